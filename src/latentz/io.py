@@ -1,0 +1,148 @@
+"""Image and table I/O.
+
+Images are read lazily: a TIFF or OME-TIFF file becomes a dask array over tifffile's zarr store, so
+movies larger than memory are read plane by plane. Tables are written atomically to Parquet or CSV.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import dask.array as da
+import numpy as np
+import pandas as pd
+
+from latentz._shared.atomic import atomic_path
+from latentz._shared.validate import check_array
+
+__all__ = ["read_stack", "as_frames", "write_table", "read_table", "TABLE_FORMATS"]
+
+TABLE_FORMATS = ("parquet", "csv")
+_TIFF_SUFFIXES = (".tif", ".tiff", ".ome.tif", ".ome.tiff")
+
+
+def read_stack(path: str | os.PathLike) -> da.Array:
+    """Open a TIFF / OME-TIFF stack or movie lazily as a dask array of shape (n, H, W).
+
+    A single 2D image becomes shape (1, H, W). Higher-rank files (for example T, Z, H, W) are
+    refused with a clear error rather than guessed at.
+    """
+    import tifffile
+    import zarr
+
+    source = Path(path)
+    if not source.exists():
+        raise FileNotFoundError(f"No such image file: {source}")
+    if not source.name.lower().endswith(_TIFF_SUFFIXES):
+        raise ValueError(f"Expected a .tif/.tiff image file, got {source.name!r}.")
+    try:
+        with tifffile.TiffFile(source) as tif:
+            series = tif.series[0]
+            shape, dtype = series.shape, series.dtype
+        store = tifffile.imread(source, aszarr=True)
+        array = da.from_zarr(zarr.open(store, mode="r"))
+    except (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError) as exc:
+        raise ValueError(f"Cannot read {source.name} as a TIFF stack: {exc}") from exc
+    if array.shape != tuple(shape) or array.dtype != dtype:
+        raise ValueError(f"{source.name}: inconsistent TIFF series {shape} {dtype}.")
+    if array.ndim == 2:
+        array = array[None]
+    if array.ndim != 3:
+        raise ValueError(
+            f"Expected {source.name} to hold a (frames, rows, columns) stack, got shape "
+            f"{array.shape}."
+        )
+    return array
+
+
+def as_frames(frames: Any, *, name: str = "frames") -> da.Array | np.ndarray:
+    """Return ``frames`` as a 3D array (n, H, W): numpy stays numpy, dask stays lazy, a path is
+    opened lazily with :func:`read_stack`. A 2D image gains a leading axis of length 1."""
+    if isinstance(frames, str | os.PathLike):
+        return read_stack(frames)
+    if isinstance(frames, da.Array):
+        array = frames
+        if array.dtype.kind not in "uif":
+            raise TypeError(f"Expected `{name}` to have a numeric dtype, got {array.dtype}.")
+    else:
+        array = check_array(name, frames, ndim=(2, 3), dtype_kind="uif")
+    if array.ndim == 2:
+        array = array[None]
+    if array.ndim != 3:
+        raise ValueError(f"Expected `{name}` to have 2 or 3 dimensions, got shape {array.shape}.")
+    if min(array.shape) == 0:
+        raise ValueError(f"Expected `{name}` to be non-empty, got shape {array.shape}.")
+    return array
+
+
+def _format_of(path: Path, fmt: str | None) -> str:
+    if fmt is not None:
+        if fmt not in TABLE_FORMATS:
+            raise ValueError(f"Expected `fmt` to be one of {TABLE_FORMATS}, got {fmt!r}.")
+        return fmt
+    suffix = path.suffix.lower()
+    if suffix in (".parquet", ".pq"):
+        return "parquet"
+    if suffix == ".csv":
+        return "csv"
+    raise ValueError(f"Cannot tell the table format of {path.name!r}: use .parquet or .csv.")
+
+
+def write_table(
+    table: pd.DataFrame,
+    path: str | os.PathLike,
+    *,
+    fmt: str | None = None,
+    metadata: dict[str, Any] | None = None,
+) -> Path:
+    """Write ``table`` atomically to Parquet or CSV (chosen by ``fmt`` or the suffix).
+
+    ``metadata`` (JSON-serialisable, e.g. provenance) is stored in the Parquet schema under the key
+    ``latentz``; for CSV it goes to a sidecar ``<path>.json`` written atomically as well.
+    """
+    from latentz._shared.atomic import write_text_atomic
+
+    target = Path(path)
+    kind = _format_of(target, fmt)
+    if not isinstance(table, pd.DataFrame):
+        raise TypeError(f"Expected `table` to be a pandas DataFrame, got {type(table).__name__}.")
+    with atomic_path(target) as tmp:
+        if kind == "parquet":
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            arrow = pa.Table.from_pandas(table, preserve_index=False)
+            if metadata:
+                meta = dict(arrow.schema.metadata or {})
+                meta[b"latentz"] = json.dumps(metadata, default=str).encode()
+                arrow = arrow.replace_schema_metadata(meta)
+            pq.write_table(arrow, tmp)
+        else:
+            table.to_csv(tmp, index=False)
+    if metadata and kind == "csv":
+        write_text_atomic(target.with_name(target.name + ".json"),
+                          json.dumps(metadata, indent=2, default=str))
+    return target
+
+
+def read_table(path: str | os.PathLike, *, fmt: str | None = None) -> tuple[pd.DataFrame, dict]:
+    """Read a table written by :func:`write_table`; return it with its latentz metadata."""
+    source = Path(path)
+    if not source.exists():
+        raise FileNotFoundError(f"No such table file: {source}")
+    kind = _format_of(source, fmt)
+    try:
+        if kind == "parquet":
+            import pyarrow.parquet as pq
+
+            arrow = pq.read_table(source)
+            raw = (arrow.schema.metadata or {}).get(b"latentz")
+            return arrow.to_pandas(), (json.loads(raw) if raw else {})
+        sidecar = source.with_name(source.name + ".json")
+        meta = json.loads(sidecar.read_text()) if sidecar.exists() else {}
+        return pd.read_csv(source), meta
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"Cannot read table {source.name}: {exc}") from exc
