@@ -46,10 +46,12 @@ class Camera:
     def __post_init__(self) -> None:
         object.__setattr__(self, "offset", check_finite("offset", self.offset))
         object.__setattr__(self, "gain", check_positive("gain", self.gain))
-        object.__setattr__(self, "readnoise", check_positive("readnoise", self.readnoise,
-                                                            allow_zero=True))
-        object.__setattr__(self, "pixel_size_nm", check_positive("pixel_size_nm",
-                                                                self.pixel_size_nm))
+        object.__setattr__(
+            self, "readnoise", check_positive("readnoise", self.readnoise, allow_zero=True)
+        )
+        object.__setattr__(
+            self, "pixel_size_nm", check_positive("pixel_size_nm", self.pixel_size_nm)
+        )
         if self.flatfield is not None:
             flat = check_array("flatfield", self.flatfield, ndim=2).astype(np.float64)
             if not np.all(np.isfinite(flat)) or np.any(flat <= 0):

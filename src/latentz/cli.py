@@ -38,13 +38,18 @@ def main() -> None:
 
 @main.command()
 @click.argument("kind", type=click.Choice(["calibration", "gear", "apertures"]))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
-              help="Folder for the TIFF stacks, ground-truth CSV and metadata JSON.")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder for the TIFF stacks, ground-truth CSV and metadata JSON.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
 @click.option("--quick", is_flag=True, help="A small dataset, for a fast look.")
 @click.option("--plot", is_flag=True, help="Also write the PSF gallery PNG.")
 def simulate(kind: str, out_dir: Path, seed: int, quick: bool, plot: bool) -> None:
-    """Simulate a dataset with ground truth: calibration stacks, a gear movie or an aperture array."""
+    """Simulate a dataset with ground truth: calibration stacks, a gear movie or apertures."""
     from latentz.simulate import write_dataset
 
     written = write_dataset(kind, out_dir, seed=seed, quick=quick, plot=plot)

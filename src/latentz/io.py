@@ -42,6 +42,7 @@ def read_stack(path: str | os.PathLike) -> da.Array:
         with tifffile.TiffFile(source) as tif:
             series = tif.series[0]
             shape, dtype = series.shape, series.dtype
+            _check_complete(tif, series, source)
         store = tifffile.imread(source, aszarr=True)
         array = da.from_zarr(zarr.open(store, mode="r"))
     except (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError) as exc:
@@ -56,6 +57,19 @@ def read_stack(path: str | os.PathLike) -> da.Array:
             f"{array.shape}."
         )
     return array
+
+
+def _check_complete(tif, series, source: Path) -> None:
+    """Refuse a truncated file: every page's image data must lie inside the file."""
+    size = source.stat().st_size
+    if series.dataoffset is not None:  # contiguous data: one check covers every page
+        if series.dataoffset + series.nbytes > size:
+            raise ValueError(f"{source.name} is truncated (image data beyond the file end).")
+        return
+    for page in tif.pages:
+        ends = [o + c for o, c in zip(page.dataoffsets, page.databytecounts, strict=True)]
+        if not ends or max(ends) > size or 0 in page.databytecounts:
+            raise ValueError(f"{source.name} is truncated (page data beyond the file end).")
 
 
 def as_frames(frames: Any, *, name: str = "frames") -> da.Array | np.ndarray:
@@ -123,8 +137,9 @@ def write_table(
         else:
             table.to_csv(tmp, index=False)
     if metadata and kind == "csv":
-        write_text_atomic(target.with_name(target.name + ".json"),
-                          json.dumps(metadata, indent=2, default=str))
+        write_text_atomic(
+            target.with_name(target.name + ".json"), json.dumps(metadata, indent=2, default=str)
+        )
     return target
 
 
