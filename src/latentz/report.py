@@ -1,0 +1,103 @@
+"""One self-contained HTML report: figures embedded as PNG data URIs, tables as HTML.
+
+The page loads nothing from the network, so it opens anywhere; every figure is also written as a
+PNG beside it for use in papers and slides.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+from latentz._shared.atomic import write_bytes_atomic, write_text_atomic
+
+__all__ = ["Section", "figure_png", "save_figure", "write_report"]
+
+
+@dataclass(frozen=True)
+class Section:
+    """A titled part of a report: a paragraph, named figures (PNG bytes) and named tables."""
+
+    title: str
+    text: str = ""
+    figures: dict[str, bytes] = field(default_factory=dict)
+    tables: dict[str, pd.DataFrame] = field(default_factory=dict)
+
+
+def figure_png(fig, *, dpi: int = 110) -> bytes:
+    """Render a matplotlib figure to PNG bytes and close it."""
+    import matplotlib.pyplot as plt
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    target = Path(path)
+    write_bytes_atomic(target, figure_png(fig, dpi=dpi))
+    return target
+
+
+_STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
+h1 { border-bottom: 2px solid #444; } h2 { margin-top: 2em; border-bottom: 1px solid #bbb; }
+figure { display: inline-block; margin: 0.5em; vertical-align: top; }
+figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.9em; color: #555; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
+th { background: #f2f2f2; }
+nav a { margin-right: 1em; }
+"""
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
+
+
+def write_report(
+    sections: list[Section],
+    path: str | os.PathLike,
+    *,
+    title: str = "latentz report",
+    png_dir: str | os.PathLike | None = None,
+) -> Path:
+    """Write the sections as one self-contained HTML file (atomically); return its path.
+
+    With ``png_dir``, every figure is also written there as ``<section>-<figure>.png``.
+    """
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>{html.escape(title)}</title><style>{_STYLE}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1><nav>",
+    ]
+    parts += [f"<a href='#{_slug(s.title)}'>{html.escape(s.title)}</a>" for s in sections]
+    parts.append("</nav>")
+    for section in sections:
+        parts.append(f"<h2 id='{_slug(section.title)}'>{html.escape(section.title)}</h2>")
+        if section.text:
+            parts += [f"<p>{html.escape(p)}</p>" for p in section.text.split("\n\n")]
+        for name, table in section.tables.items():
+            parts.append(f"<h3>{html.escape(name)}</h3>")
+            parts.append(table.to_html(index=False, float_format=lambda v: f"{v:.4g}"))
+        for name, png in section.figures.items():
+            data = base64.b64encode(png).decode("ascii")
+            parts.append(
+                f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{data}'>"
+                f"<figcaption>{html.escape(name)}</figcaption></figure>"
+            )
+            if png_dir is not None:
+                write_bytes_atomic(Path(png_dir) / f"{_slug(section.title)}-{_slug(name)}.png", png)
+    parts.append("</body></html>")
+    target = Path(path)
+    write_text_atomic(target, "\n".join(parts))
+    return target

@@ -1,0 +1,47 @@
+import base64
+import re
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from latentz.report import Section, figure_png, write_report  # noqa: E402
+
+
+def _figure():
+    fig, ax = plt.subplots()
+    ax.plot(np.arange(10), np.arange(10) ** 2)
+    return fig
+
+
+def test_report_embeds_every_figure_as_a_loadable_png(tmp_path):
+    sections = [
+        Section("Calibration", "z_f per particle.", figures={"Fig 2": figure_png(_figure())}),
+        Section(
+            "Motion",
+            tables={"Table 1": pd.DataFrame({"dof": ["gamma"], "mean": [0.098]})},
+            figures={"trajectory": figure_png(_figure()), "play": figure_png(_figure())},
+        ),
+    ]
+    path = write_report(sections, tmp_path / "report.html", png_dir=tmp_path / "figs")
+    page = path.read_text()
+    sources = re.findall(r"src='([^']+)'", page)
+    assert len(sources) == 3
+    for src in sources:
+        assert src.startswith("data:image/png;base64,")  # nothing to fetch
+        png = base64.b64decode(src.split(",", 1)[1])
+        with Image.open(__import__("io").BytesIO(png)) as image:
+            image.verify()
+    assert "http" not in page.replace("http-equiv", "")
+    assert "<table" in page and "gamma" in page
+    assert len(list((tmp_path / "figs").glob("*.png"))) == 3
+
+
+def test_report_escapes_text(tmp_path):
+    path = write_report([Section("<b>x</b>", "a < b")], tmp_path / "r.html")
+    page = path.read_text()
+    assert "&lt;b&gt;x&lt;/b&gt;" in page and "a &lt; b" in page
