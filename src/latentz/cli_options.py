@@ -1,0 +1,88 @@
+"""Shared option parsing for the CLI: camera, z positions, output formats.
+
+Kept apart from ``cli.py`` so that each piece is testable as a plain function.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from latentz._shared.validate import check_finite, check_int, check_positive
+from latentz.camera import Camera
+
+__all__ = ["camera_from_options", "z_positions"]
+
+
+def camera_from_options(
+    camera_file: str | os.PathLike | None,
+    *,
+    offset: float | None = None,
+    gain: float | None = None,
+    readnoise: float | None = None,
+    pixel_size_nm: float | None = None,
+) -> Camera | None:
+    """A Camera from a JSON file and/or explicit values (explicit values win); None if neither.
+
+    The JSON file holds ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm`` and optionally
+    ``flatfield``: a path to a TIFF image, relative to the JSON file.
+    """
+    values: dict = {}
+    flatfield = None
+    if camera_file is not None:
+        path = Path(camera_file)
+        if not path.exists():
+            raise FileNotFoundError(f"No such camera file: {path}")
+        try:
+            values = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"Camera file {path.name} is not valid JSON: {exc}") from exc
+        if not isinstance(values, dict):
+            raise ValueError(f"Camera file {path.name} must hold a JSON object.")
+        unknown = set(values) - {"offset", "gain", "readnoise", "pixel_size_nm", "flatfield"}
+        if unknown:
+            raise ValueError(f"Camera file {path.name} has unknown key(s): {sorted(unknown)}.")
+        if "flatfield" in values:
+            import tifffile
+
+            flatfield = tifffile.imread(path.parent / values.pop("flatfield"))
+    given = {"offset": offset, "gain": gain, "readnoise": readnoise, "pixel_size_nm": pixel_size_nm}
+    values.update({k: v for k, v in given.items() if v is not None})
+    if not values and flatfield is None:
+        return None
+    return Camera(**values, flatfield=flatfield)
+
+
+def z_positions(
+    n_planes: int,
+    *,
+    z_start_nm: float | None = None,
+    z_step_nm: float | None = None,
+    z_file: str | os.PathLike | None = None,
+) -> np.ndarray:
+    """Piezo z (nm) of each plane: from ``--z-start``/``--z-step`` or a text file, one per line."""
+    n_planes = check_int("n_planes", n_planes, minimum=1)
+    if z_file is not None:
+        if z_start_nm is not None or z_step_nm is not None:
+            raise ValueError("Give either --z-file or --z-start/--z-step, not both.")
+        path = Path(z_file)
+        if not path.exists():
+            raise FileNotFoundError(f"No such z file: {path}")
+        try:
+            z = np.loadtxt(path, dtype=np.float64, delimiter=",", ndmin=1, comments="#")
+        except ValueError as exc:
+            raise ValueError(f"z file {path.name} must hold one number per line: {exc}") from exc
+        if z.ndim != 1:
+            raise ValueError(f"z file {path.name} must hold one number per line.")
+    else:
+        if z_start_nm is None or z_step_nm is None:
+            raise ValueError("Give the plane positions with --z-start and --z-step, or --z-file.")
+        start = check_finite("z_start_nm", z_start_nm)
+        step = check_positive("z_step_nm", z_step_nm)
+        z = start + step * np.arange(n_planes)
+    if z.size != n_planes:
+        raise ValueError(f"The stack has {n_planes} planes but {z.size} z positions were given.")
+    return z

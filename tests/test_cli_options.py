@@ -1,0 +1,67 @@
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from latentz.cli_options import camera_from_options, z_positions
+
+
+def test_camera_from_file_and_overrides(tmp_path):
+    tifffile.imwrite(tmp_path / "flat.tif", np.full((4, 4), 2.0, np.float32))
+    (tmp_path / "cam.json").write_text(
+        json.dumps({"offset": 400, "gain": 0.1, "pixel_size_nm": 110, "flatfield": "flat.tif"})
+    )
+    cam = camera_from_options(tmp_path / "cam.json", gain=0.2)
+    assert (cam.offset, cam.gain, cam.pixel_size_nm) == (400.0, 0.2, 110.0)
+    np.testing.assert_array_equal(cam.flatfield, 2.0)
+    assert camera_from_options(None) is None
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [("{bad", "not valid JSON"), ("[1, 2]", "JSON object"), ('{"gian": 1}', "unknown key")],
+)
+def test_bad_camera_files(tmp_path, text, match):
+    (tmp_path / "cam.json").write_text(text)
+    with pytest.raises(ValueError, match=match):
+        camera_from_options(tmp_path / "cam.json")
+
+
+def test_missing_camera_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="camera file"):
+        camera_from_options(tmp_path / "none.json")
+
+
+def test_non_positive_gain_from_options():
+    with pytest.raises(ValueError, match="gain"):
+        camera_from_options(None, gain=0.0)
+
+
+def test_z_from_start_and_step():
+    np.testing.assert_allclose(z_positions(3, z_start_nm=-100, z_step_nm=50), [-100, -50, 0])
+
+
+def test_z_from_file(tmp_path):
+    (tmp_path / "z.txt").write_text("# piezo nm\n-10\n0\n10.5\n")
+    np.testing.assert_allclose(z_positions(3, z_file=tmp_path / "z.txt"), [-10, 0, 10.5])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({}, "--z-start"),
+        ({"z_start_nm": 0.0}, "--z-start"),
+        ({"z_start_nm": 0.0, "z_step_nm": 0.0}, "z_step_nm"),
+        ({"z_start_nm": 0.0, "z_step_nm": -5.0}, "z_step_nm"),
+    ],
+)
+def test_bad_z_options(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        z_positions(4, **kwargs)
+
+
+def test_z_file_length_must_match(tmp_path):
+    (tmp_path / "z.txt").write_text("1\n2\n")
+    with pytest.raises(ValueError, match="3 planes but 2"):
+        z_positions(3, z_file=tmp_path / "z.txt")
