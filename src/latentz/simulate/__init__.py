@@ -1,0 +1,1 @@
+"""Simulated microscope, calibration stacks and gear movies with ground truth."""
