@@ -1,0 +1,489 @@
+"""numba kernels: batched Levenberg–Marquardt fits of eq. 1, parallel over ROIs.
+
+One compiled kernel, `fit_batch`, serves all three estimators (``method`` is an integer argument,
+not a specialisation). It takes float64 ROIs in photoelectrons and writes into arrays that the
+Python wrapper allocated. The NumPy reference twin is :func:`latentz.fit._reference.fit_reference`.
+
+Parameters inside the kernel are internal (``x, y, A, B, log wx, log wy, atanh rho``); see
+:mod:`._model` for the model and its derivatives.
+
+Estimators (``s2`` is the read-noise variance in photoelectrons squared):
+
+``LSQ``   minimise ``sum (d - mu)^2`` (scaled by a per-ROI constant so that the objective is in
+          chi-square units; the solution is unchanged).
+``WLSQ``  light-weighting: minimise ``sum (d - mu)^2 / (mu_k + s2)`` with weights from the model
+          ``mu_k`` of the last accepted iterate, recomputed after every accepted step. At its fixed
+          point the weighted normal equations equal the Poisson score equations.
+``MLE``   minimise the Poisson deviance of ``d + s2 ~ Poisson(mu + s2)`` by Fisher scoring.
+
+All three take the Levenberg–Marquardt step ``(H + lam diag H) delta = g`` with ``H`` the
+(weighted) Gauss–Newton / Fisher matrix and ``g`` half the negative gradient, project it onto
+the parameter box, and accept it only if the objective decreases. A fit has converged when the
+predicted further decrease of the objective is at most ``tol`` per pixel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+LSQ, WLSQ, MLE = 0, 1, 2
+_NP = 7
+_LAM0 = 1e-3
+_LAM_MAX = 1e10
+_FASTMATH = {"nsz", "arcp", "contract", "reassoc"}
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _start(roi, out):
+    """Moment-based start (natural parameters) — twin of `_model.moment_start`."""
+    h, w = roi.shape
+    border = 0.0
+    for j in range(w):
+        border += roi[0, j] + roi[h - 1, j]
+    for i in range(1, h - 1):
+        border += roi[i, 0] + roi[i, w - 1]
+    bg = border / (2 * w + 2 * (h - 2))
+    best = -np.inf
+    i0 = 0
+    j0 = 0
+    signal = 0.0
+    for i in range(h):
+        for j in range(w):
+            signal += roi[i, j] - bg
+            s = 0.0
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    ii = i + di
+                    jj = j + dj
+                    if 0 <= ii < h and 0 <= jj < w:
+                        s += roi[ii, jj] - bg
+            if s > best:
+                best = s
+                i0 = i
+                j0 = j
+    peak = max(roi[i0, j0] - bg, best / 9.0)
+    tot = 0.0
+    sx = 0.0
+    sy = 0.0
+    for i in range(max(i0 - 1, 0), min(i0 + 2, h)):
+        for j in range(max(j0 - 1, 0), min(j0 + 2, w)):
+            p = max(roi[i, j] - bg, 0.0)
+            tot += p
+            sx += p * j
+            sy += p * i
+    x0 = sx / tot if tot > 0 else float(j0)
+    y0 = sy / tot if tot > 0 else float(i0)
+    tot = 0.0
+    vxx = 0.0
+    vyy = 0.0
+    vxy = 0.0
+    for i in range(h):
+        for j in range(w):
+            p = max(roi[i, j] - bg, 0.0)
+            dx = j - x0
+            dy = i - y0
+            tot += p
+            vxx += p * dx * dx
+            vyy += p * dy * dy
+            vxy += p * dx * dy
+    if tot > 0:
+        vxx /= tot
+        vyy /= tot
+        vxy /= tot
+    wmax = 0.5 * min(h, w)
+    rho = 0.0
+    aspect = 1.0
+    if vxx > 0 and vyy > 0:
+        rho = min(max(vxy / math.sqrt(vxx * vyy), -0.8), 0.8)
+        aspect = min(max(math.sqrt(vxx / vyy), 0.5), 2.0)
+    amp = max(peak, 1e-3)
+    area = max(signal, amp) / (2.0 * math.pi * amp * math.sqrt(1.0 - rho * rho))
+    area = min(max(area, 0.25), wmax * wmax)
+    out[0] = x0
+    out[1] = y0
+    out[2] = amp
+    out[3] = bg
+    out[4] = min(max(math.sqrt(area * aspect), 0.5), wmax)
+    out[5] = min(max(math.sqrt(area / aspect), 0.5), wmax)
+    out[6] = rho
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
+    """Objective at internal parameters ``p``, with ``hess`` and ``grad`` for the next step.
+
+    Returns ``(objective with the reference weights, objective with the weights at p)``; they
+    differ only for WLSQ, whose reference weights come from ``mu_ref``. ``mu_out`` receives the
+    model at ``p`` (row-major). For MLE the deviance lacks the data-only constant
+    ``sum d' log d' - d'``, which cancels in every comparison.
+    """
+    h, w = roi.shape
+    x = p[0]
+    y = p[1]
+    amp = p[2]
+    bg = p[3]
+    wx = math.exp(p[4])
+    wy = math.exp(p[5])
+    rho = math.tanh(p[6])
+    om = 1.0 - rho * rho
+    iom = 1.0 / om
+    iwx = 1.0 / wx
+    iwy = 1.0 / wy
+    for k in range(_NP):
+        grad[k] = 0.0
+        for m in range(k, _NP):
+            hess[k, m] = 0.0
+    obj_ref = 0.0
+    obj_new = 0.0
+    for i in range(h):
+        v = (i - y) * iwy
+        for j in range(w):
+            u = (j - x) * iwx
+            a = (u - rho * v) * iom
+            b = (v - rho * u) * iom
+            q = u * a + v * b
+            g = math.exp(-0.5 * q)
+            ag = amp * g
+            mu = ag + bg
+            d = roi[i, j]
+            mu_out[i * w + j] = mu
+            if method == MLE:
+                mus = mu + s2
+                if mus <= 0.0:
+                    return np.inf, np.inf
+                ds = d + s2
+                wt = 1.0 / mus
+                if ds > 0.0:
+                    term = 2.0 * (mus - ds * math.log(mus))
+                    res = ds * wt - 1.0
+                else:
+                    term = 2.0 * mus
+                    res = -1.0
+                obj_ref += term
+            elif method == WLSQ:
+                r = d - mu
+                wt = 1.0 / (mu + s2)
+                obj_ref += r * r / (mu_ref[i * w + j] + s2)
+                obj_new += r * r * wt
+                res = r * wt
+            else:
+                r = d - mu
+                wt = scale
+                obj_ref += r * r * scale
+                res = r * scale
+            j0 = ag * a * iwx
+            j1 = ag * b * iwy
+            j4 = ag * u * a
+            j5 = ag * v * b
+            j6 = ag * (u * v - rho * q)
+            grad[0] += j0 * res
+            grad[1] += j1 * res
+            grad[2] += g * res
+            grad[3] += res
+            grad[4] += j4 * res
+            grad[5] += j5 * res
+            grad[6] += j6 * res
+            w0 = wt * j0
+            w1 = wt * j1
+            w2 = wt * g
+            w4 = wt * j4
+            w5 = wt * j5
+            w6 = wt * j6
+            hess[0, 0] += w0 * j0
+            hess[0, 1] += w0 * j1
+            hess[0, 2] += w0 * g
+            hess[0, 3] += w0
+            hess[0, 4] += w0 * j4
+            hess[0, 5] += w0 * j5
+            hess[0, 6] += w0 * j6
+            hess[1, 1] += w1 * j1
+            hess[1, 2] += w1 * g
+            hess[1, 3] += w1
+            hess[1, 4] += w1 * j4
+            hess[1, 5] += w1 * j5
+            hess[1, 6] += w1 * j6
+            hess[2, 2] += w2 * g
+            hess[2, 3] += w2
+            hess[2, 4] += w2 * j4
+            hess[2, 5] += w2 * j5
+            hess[2, 6] += w2 * j6
+            hess[3, 3] += wt
+            hess[3, 4] += w4
+            hess[3, 5] += w5
+            hess[3, 6] += w6
+            hess[4, 4] += w4 * j4
+            hess[4, 5] += w4 * j5
+            hess[4, 6] += w4 * j6
+            hess[5, 5] += w5 * j5
+            hess[5, 6] += w5 * j6
+            hess[6, 6] += w6 * j6
+    for k in range(_NP):
+        for m in range(k + 1, _NP):
+            hess[m, k] = hess[k, m]
+    if method != WLSQ:
+        obj_new = obj_ref
+    return obj_ref, obj_new
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _cholesky(a, lower):
+    """Cholesky factor of the symmetric matrix ``a`` into ``lower``; False if not positive."""
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j]
+            for k in range(j):
+                s -= lower[i, k] * lower[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                lower[i, i] = math.sqrt(s)
+            else:
+                lower[i, j] = s / lower[j, j]
+    return True
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _solve(lower, b, out):
+    """Solve ``L L^T out = b`` given the Cholesky factor ``lower``."""
+    n = b.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= lower[i, k] * out[k]
+        out[i] = s / lower[i, i]
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= lower[k, i] * out[k]
+        out[i] = s / lower[i, i]
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _fit_one(roi, start, lower_b, upper_b, method, s2, max_iter, tol, scratch, out_p, out_e):
+    """Fit one ROI from the natural-parameter ``start``; return (loglik, chi2, iters, converged).
+
+    ``scratch`` holds the work arrays: rows 0–2 of ``scratch[0]`` are model buffers of h*w.
+    """
+    h, w = roi.shape
+    npix = h * w
+    mu_ref = scratch[0]
+    mu_try = scratch[1]
+    hess = np.empty((_NP, _NP))
+    hess_try = np.empty((_NP, _NP))
+    lower = np.empty((_NP, _NP))
+    grad = np.empty(_NP)
+    grad_try = np.empty(_NP)
+    delta = np.empty(_NP)
+    p = np.empty(_NP)
+    p_try = np.empty(_NP)
+    p[0] = start[0]
+    p[1] = start[1]
+    p[2] = start[2]
+    p[3] = start[3]
+    p[4] = math.log(start[4])
+    p[5] = math.log(start[5])
+    p[6] = math.atanh(start[6])
+    for k in range(_NP):
+        p[k] = min(max(p[k], lower_b[k]), upper_b[k])
+    scale = 0.0
+    if method == LSQ:
+        for i in range(h):
+            for j in range(w):
+                scale += roi[i, j] + s2
+        scale = 1.0 / max(scale / npix, 1.0)
+    # With mu_out = mu_ref, WLSQ's first weights are those of the start itself.
+    obj = _evaluate(roi, p, method, s2, scale, mu_ref, mu_ref, hess, grad)[1]
+    converged = False
+    lam = _LAM0
+    iters = 0
+    if math.isfinite(obj):
+        limit = tol * npix
+        while iters < max_iter:
+            iters += 1
+            for k in range(_NP):
+                for m in range(_NP):
+                    hess_try[k, m] = hess[k, m]
+                hess_try[k, k] = hess[k, k] * (1.0 + lam) + 1e-12
+            if not _cholesky(hess_try, lower):
+                lam *= 10.0
+                if lam > _LAM_MAX:
+                    break
+                continue
+            _solve(lower, grad, delta)
+            predicted = 0.0
+            for k in range(_NP):
+                predicted += grad[k] * delta[k]
+            if predicted <= limit and lam <= 1e-2:
+                converged = True
+                break
+            for k in range(_NP):
+                p_try[k] = min(max(p[k] + delta[k], lower_b[k]), upper_b[k])
+            obj_try, obj_try_w = _evaluate(
+                roi, p_try, method, s2, scale, mu_ref, mu_try, hess_try, grad_try
+            )
+            if obj_try < obj:
+                decrease = obj - obj_try
+                for k in range(_NP):
+                    p[k] = p_try[k]
+                    grad[k] = grad_try[k]
+                    for m in range(_NP):
+                        hess[k, m] = hess_try[k, m]
+                for k in range(npix):
+                    mu_ref[k] = mu_try[k]
+                obj = obj_try_w
+                lam = max(lam * 0.1, 1e-7)
+                if decrease <= limit:
+                    converged = True
+                    break
+            else:
+                lam *= 10.0
+                if lam > _LAM_MAX:
+                    break
+    return _finish(
+        roi,
+        p,
+        lower_b,
+        upper_b,
+        method,
+        s2,
+        scale,
+        mu_ref,
+        hess,
+        grad,
+        lower,
+        converged,
+        iters,
+        out_p,
+        out_e,
+    )
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _finish(
+    roi,
+    p,
+    lower_b,
+    upper_b,
+    method,
+    s2,
+    scale,
+    mu,
+    hess,
+    grad,
+    lower,
+    converged,
+    iters,
+    out_p,
+    out_e,
+):
+    """Natural parameters, Cramér–Rao bounds, log-likelihood and chi-square at ``p``."""
+    h, w = roi.shape
+    if method == LSQ:
+        # The Fisher information needs the Poisson weights; WLSQ's and MLE's ``hess`` at ``p``
+        # already is the Fisher information.
+        _evaluate(roi, p, MLE, s2, scale, mu, mu, hess, grad)
+    wx = math.exp(p[4])
+    wy = math.exp(p[5])
+    rho = math.tanh(p[6])
+    out_p[0] = p[0]
+    out_p[1] = p[1]
+    out_p[2] = p[2]
+    out_p[3] = p[3]
+    out_p[4] = wx
+    out_p[5] = wy
+    out_p[6] = rho
+    for k in range(_NP):
+        if k != 3 and (p[k] <= lower_b[k] or p[k] >= upper_b[k]):
+            converged = False
+    unit = np.zeros(_NP)
+    col = np.empty(_NP)
+    if _cholesky(hess, lower):
+        for k in range(_NP):
+            unit[k] = 1.0
+            _solve(lower, unit, col)
+            unit[k] = 0.0
+            out_e[k] = math.sqrt(col[k]) if col[k] > 0 else np.nan
+        out_e[4] *= wx
+        out_e[5] *= wy
+        out_e[6] *= 1.0 - rho * rho
+    else:
+        for k in range(_NP):
+            out_e[k] = np.nan
+        converged = False
+    loglik = 0.0
+    chi2 = 0.0
+    for i in range(h):
+        for j in range(w):
+            m = mu[i * w + j] + s2
+            d = roi[i, j] + s2
+            r = roi[i, j] - mu[i * w + j]
+            chi2 += r * r / m
+            if d > 0:
+                loglik += d * math.log(m) - m - math.lgamma(d + 1.0)
+            else:
+                loglik -= m
+    return loglik, chi2, iters, converged
+
+
+@numba.njit(parallel=True, cache=True)
+def fit_batch(
+    rois,
+    start,
+    use_start,
+    lower_b,
+    upper_b,
+    method,
+    s2,
+    max_iter,
+    tol,
+    n_chunks,
+    out_p,
+    out_e,
+    out_loglik,
+    out_chi2,
+    out_iter,
+    out_conv,
+):
+    """Fit every ROI of ``rois`` (n, h, w) in parallel; outputs are written in place.
+
+    ``start`` (n, 7) holds natural starting values, used where ``use_start`` is true; otherwise
+    the moment start is computed. The ROIs are split into ``n_chunks`` contiguous chunks that
+    share work buffers. ROIs with a non-finite pixel are skipped: NaN parameters,
+    ``converged`` False, 0 iterations.
+    """
+    n, h, w = rois.shape
+    for c in numba.prange(n_chunks):
+        scratch = np.empty((2, h * w))
+        first = np.empty(_NP)
+        for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            roi = rois[k]
+            finite = True
+            for i in range(h):
+                for j in range(w):
+                    if not math.isfinite(roi[i, j]):
+                        finite = False
+            if not finite:
+                for m in range(_NP):
+                    out_p[k, m] = np.nan
+                    out_e[k, m] = np.nan
+                out_loglik[k] = np.nan
+                out_chi2[k] = np.nan
+                out_iter[k] = 0
+                out_conv[k] = False
+                continue
+            if use_start[k]:
+                for m in range(_NP):
+                    first[m] = start[k, m]
+            else:
+                _start(roi, first)
+            loglik, chi2, iters, conv = _fit_one(
+                roi, first, lower_b, upper_b, method, s2, max_iter, tol, scratch, out_p[k], out_e[k]
+            )
+            out_loglik[k] = loglik
+            out_chi2[k] = chi2
+            out_iter[k] = iters
+            out_conv[k] = conv

@@ -1,0 +1,229 @@
+"""Public fitting API: `fit_arrays` (arrays) and `fit_rois` (table), over the numba kernels."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import numba
+import numpy as np
+import pandas as pd
+
+from latentz._shared.validate import check_array, check_choice, check_int, check_positive
+from latentz.camera import Camera
+from latentz.fit import _kernels
+from latentz.fit._model import PARAMS, as_param_array, photons_of
+
+__all__ = ["FitResult", "fit_arrays", "fit_rois", "METHODS", "FIT_COLUMNS"]
+
+METHODS = {"lsq": _kernels.LSQ, "wlsq": _kernels.WLSQ, "mle": _kernels.MLE}
+ERROR_COLUMNS = tuple(f"{name}_err" for name in PARAMS)
+#: Columns of the table returned by `fit_rois`, in order.
+FIT_COLUMNS = (
+    *PARAMS,
+    "photons",
+    *ERROR_COLUMNS,
+    "loglik",
+    "chi2",
+    "iterations",
+    "converged",
+)
+_RHO_MAX = 0.95
+_W_MIN = 0.3
+
+
+class FitResult(NamedTuple):
+    """Arrays returned by `fit_arrays`, one row per ROI.
+
+    Attributes
+    ----------
+    params : ndarray (n, 7)
+        x, y (px, ROI coordinates), amplitude, background (photoelectrons), wx, wy (px), rho.
+    errors : ndarray (n, 7)
+        Cramér–Rao standard deviations of ``params`` at the fit.
+    loglik : ndarray (n,)
+        Log-likelihood of the data under ``d + s^2 ~ Poisson(mu + s^2)`` at the fit.
+    chi2 : ndarray (n,)
+        Pearson chi-square, ``sum (d - mu)^2 / (mu + s^2)``.
+    iterations : ndarray (n,) of int
+        Levenberg–Marquardt iterations taken.
+    converged : ndarray (n,) of bool
+        False for a ROI with a non-finite pixel, a fit that stalled or hit ``max_iter``, a fit
+        that ended on a parameter bound, or a singular Fisher information.
+    """
+
+    params: np.ndarray
+    errors: np.ndarray
+    loglik: np.ndarray
+    chi2: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+
+
+def parameter_bounds(shape: tuple[int, int], readnoise: float) -> tuple[np.ndarray, np.ndarray]:
+    """Box of the internal parameters (x, y, A, B, log wx, log wy, atanh rho) for ROIs of ``shape``.
+
+    Positions may leave the ROI by one pixel, widths lie in [0.3, max(h, w)] px, ``|rho| <= 0.95``
+    and the background keeps ``mu + readnoise^2`` positive.
+    """
+    h, w = shape
+    s2 = readnoise**2
+    lower = np.array(
+        [-1.0, -1.0, 0.0, -s2 + 1e-3, math.log(_W_MIN), math.log(_W_MIN), -math.atanh(_RHO_MAX)]
+    )
+    upper = np.array(
+        [w, h, np.inf, np.inf, math.log(max(h, w)), math.log(max(h, w)), math.atanh(_RHO_MAX)]
+    )
+    return lower, upper
+
+
+def fit_arrays(
+    rois: Any,
+    *,
+    method: str = "mle",
+    readnoise: float = 0.0,
+    init: Any = None,
+    max_iter: int = 50,
+    tol: float = 1e-6,
+) -> FitResult:
+    """Fit eq. 1 to each ROI of a stack in photoelectrons; the array core of `fit_rois`.
+
+    Parameters
+    ----------
+    rois : array_like (n, h, w)
+        Photoelectrons per pixel. h and w must be at least 3.
+    method : {"mle", "wlsq", "lsq"}
+        Estimator; see `fit_rois`.
+    readnoise : float
+        Read-noise standard deviation in photoelectrons (>= 0).
+    init : array_like (n, 7) or DataFrame, optional
+        Starting values in natural parameters (columns of `PARAMS`); a row with a non-finite
+        value falls back to the moment start. Default: moment start for every ROI.
+    max_iter : int
+        Maximum Levenberg–Marquardt iterations per ROI.
+    tol : float
+        Convergence when the predicted further decrease of the objective (chi-square units) is at
+        most ``tol`` per pixel.
+
+    Returns
+    -------
+    FitResult
+    """
+    data = check_array("rois", rois, ndim=3, dtype_kind="uif")
+    n, h, w = data.shape
+    if h < 3 or w < 3:
+        raise ValueError(f"Expected ROIs of at least 3 x 3 pixels, got shape {data.shape}.")
+    code = METHODS[check_choice("method", method, METHODS)]
+    s2 = check_positive("readnoise", readnoise, allow_zero=True) ** 2
+    max_iter = check_int("max_iter", max_iter, minimum=1)
+    tol = check_positive("tol", tol)
+    data = np.ascontiguousarray(data, dtype=np.float64)
+    start = np.zeros((n, len(PARAMS)))
+    use_start = np.zeros(n, dtype=np.bool_)
+    if init is not None:
+        start = as_param_array(init, name="init")
+        if start.shape[0] != n:
+            raise ValueError(
+                f"Expected `init` to have {n} rows (one per ROI), got {start.shape[0]}."
+            )
+        use_start = (
+            np.all(np.isfinite(start), axis=1)
+            & (start[:, 4] > 0)
+            & (start[:, 5] > 0)
+            & (np.abs(start[:, 6]) < 1)
+        )
+        start = np.ascontiguousarray(start)
+    lower, upper = parameter_bounds((h, w), math.sqrt(s2))
+    params = np.empty((n, len(PARAMS)))
+    errors = np.empty((n, len(PARAMS)))
+    loglik = np.empty(n)
+    chi2 = np.empty(n)
+    iterations = np.empty(n, dtype=np.int64)
+    converged = np.empty(n, dtype=np.bool_)
+    _kernels.fit_batch(
+        data, start, use_start, lower, upper, code, s2, max_iter, tol,
+        min(n, 64 * numba.get_num_threads()),
+        params, errors, loglik, chi2, iterations, converged,
+    )  # fmt: skip
+    return FitResult(params, errors, loglik, chi2, iterations, converged)
+
+
+def result_table(result: FitResult) -> pd.DataFrame:
+    """The columns `FIT_COLUMNS` of a `FitResult`, as a DataFrame."""
+    table = pd.DataFrame(result.params, columns=list(PARAMS))
+    table["photons"] = photons_of(table["amplitude"], table["wx"], table["wy"], table["rho"])
+    for k, name in enumerate(ERROR_COLUMNS):
+        table[name] = result.errors[:, k]
+    table["loglik"] = result.loglik
+    table["chi2"] = result.chi2
+    table["iterations"] = result.iterations
+    table["converged"] = result.converged
+    return table
+
+
+def fit_rois(
+    rois: Any,
+    *,
+    method: str = "mle",
+    camera: Camera | None = None,
+    init: Any = None,
+    max_iter: int = 50,
+    tol: float = 1e-6,
+) -> pd.DataFrame:
+    """Fit the bivariate Gaussian of eq. 1 to every ROI (Copeland et al. 2021).
+
+    Parameters
+    ----------
+    rois : array_like (n, h, w)
+        ROIs in photoelectrons if ``camera`` is None, else in ADU (converted with
+        ``camera.to_photons``). h and w are at least 3.
+    method : {"mle", "wlsq", "lsq"}
+        ``"mle"``: Poisson maximum likelihood, read noise by ``d + s^2 ~ Poisson(mu + s^2)``.
+        ``"wlsq"``: the paper's light-weighting, read here as least squares weighted by
+        ``1 / (mu + readnoise^2)`` from the current model, recomputed after every accepted step
+        (iterated); its fixed point is the Poisson maximum-likelihood estimate.
+        ``"lsq"``: unweighted least squares.
+    camera : Camera, optional
+        Offset, gain and read noise. A camera with a flatfield is refused: a ROI does not know
+        where it lies on the sensor, so convert whole frames first (as `localize` does).
+    init : DataFrame or array_like (n, 7), optional
+        Starting values (columns x, y, amplitude, background, wx, wy, rho); default moments.
+    max_iter : int
+        Maximum Levenberg–Marquardt iterations per ROI.
+    tol : float
+        Convergence tolerance: predicted further decrease of the objective per pixel.
+
+    Returns
+    -------
+    DataFrame
+        One row per ROI, in ROI coordinates (pixel ``[i, j]`` centred at ``x = j, y = i``), with
+        the columns `FIT_COLUMNS`: x, y, amplitude, background, wx, wy, rho, photons
+        (``2 pi A wx wy sqrt(1 - rho^2)``), their Cramér–Rao errors ``*_err``, loglik, chi2,
+        iterations and converged. A failed fit is returned with ``converged`` False.
+
+    Examples
+    --------
+    >>> from latentz.fit import render_rois
+    >>> truth = {"x": [5.3], "y": [4.8], "amplitude": [200.0], "background": [10.0],
+    ...          "wx": [1.5], "wy": [1.2], "rho": [0.3]}
+    >>> fit = fit_rois(render_rois(truth, shape=11))
+    >>> round(float(fit["x"].iloc[0]), 6), bool(fit["converged"].iloc[0])
+    (5.3, True)
+    """
+    readnoise = 0.0
+    if camera is not None:
+        if not isinstance(camera, Camera):
+            raise TypeError(
+                f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}."
+            )
+        if camera.flatfield is not None:
+            raise ValueError(
+                "`camera` has a flatfield, but fit_rois cannot know where the ROIs lie on the "
+                "sensor: convert frames with camera.to_photons first, or use localize."
+            )
+        rois = camera.to_photons(check_array("rois", rois, ndim=3, dtype_kind="uif"))
+        readnoise = camera.readnoise
+    result = fit_arrays(
+        rois, method=method, readnoise=readnoise, init=init, max_iter=max_iter, tol=tol
+    )
+    return result_table(result)
