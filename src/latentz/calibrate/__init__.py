@@ -1,0 +1,26 @@
+"""Through-focus calibration of the microscope's intrinsic aberrations (paper Figs. 2–3).
+
+Local calibration of each calibration particle (traces, z_f, Δx'(z), Δy'(z), z(shape), σ's),
+culling, tilt removal, and 3D localization with the nearest particle's models.
+"""
+
+from latentz.calibrate.calibration import FIELD_MODELS, Calibration, calibrate, calibrate_traces
+from latentz.calibrate.polymodel import PolyModel
+from latentz.calibrate.shape import SHAPES, astigmatism_angle, shape_value
+from latentz.calibrate.tilt import TiltPlane
+from latentz.calibrate.traces import Traces, extract_traces, find_particles
+
+__all__ = [
+    "FIELD_MODELS",
+    "SHAPES",
+    "Calibration",
+    "PolyModel",
+    "TiltPlane",
+    "Traces",
+    "astigmatism_angle",
+    "calibrate",
+    "calibrate_traces",
+    "extract_traces",
+    "find_particles",
+    "shape_value",
+]

@@ -1,0 +1,288 @@
+"""Local (per-particle) calibration models (METHOD.md items 6–10; paper Fig. 2, Supp. Table 2).
+
+For every calibration particle, as arrays over all particles at once:
+
+- z_f, the peak of a polynomial (order 5) fitted to A(z) around its maximum;
+- Δx'(z) = x'(z) − x'(z_f) and Δy'(z), polynomials of order 16 (eqs. 2–3);
+- for each shape parameter s: the forward model s(z) (order 16), the range of z around focus over
+  which it is monotonic, and the inverse z(s) (order 16) fitted over that range;
+- uncertainties σ_Δx'(z), σ_Δy'(z) and σ_z(z) from the residuals of those fits: the RMS of the
+  residuals in a sliding window of z (Fig. 2, bottom panels), corrected for the degrees of freedom
+  the polynomial used.
+
+All z models are in piezo coordinates here; :meth:`LocalModels.shifted` moves them onto the
+tilt-corrected axis (``z − plane(x, y)``) exactly, by shifting each polynomial's domain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from latentz.calibrate.polymodel import PolyModel
+from latentz.calibrate.shape import reference_amplitude, shape_value, uses_amplitude
+from latentz.calibrate.traces import Traces
+
+__all__ = ["LocalOptions", "ShapeModel", "LocalModels", "fit_local", "sliding_rms", "peak"]
+
+
+@dataclass(frozen=True)
+class LocalOptions:
+    """Orders and windows of the local models (the paper's orders are the defaults).
+
+    Attributes
+    ----------
+    amplitude_order : int
+        Order of the A(z) polynomial whose peak is z_f (paper: 5).
+    focus_fraction : float
+        A(z) is fitted on the contiguous planes around its maximum where A ≥ this fraction of the
+        maximum, so that the order-5 polynomial describes the peak rather than the tails.
+    lateral_order : int
+        Order of Δx'(z), Δy'(z) (paper: 16).
+    shape_order : int
+        Order of the forward s(z) and inverse z(s) models (paper: 16).
+    sigma_window_nm : float
+        Width of the sliding window for the residual RMS, nm.
+    min_range_nm : float
+        Shortest monotonic range accepted for an inverse model, nm.
+    """
+
+    amplitude_order: int = 5
+    focus_fraction: float = 0.5
+    lateral_order: int = 16
+    shape_order: int = 16
+    sigma_window_nm: float = 500.0
+    min_range_nm: float = 300.0
+
+
+@dataclass(frozen=True, eq=False)
+class ShapeModel:
+    """Local models of one shape parameter for ``n`` particles.
+
+    Attributes
+    ----------
+    values : ndarray (n, n_z)
+        Measured shape values of the calibration images.
+    forward : PolyModel
+        s(z) over the whole stack.
+    inverse : PolyModel
+        z(s) over the monotonic range; its domain is the shape range it covers.
+    z_range : ndarray (n, 2)
+        Monotonic z range (nm) around focus.
+    sigma_z : ndarray (n, n_z)
+        σ_z at each plane from the inverse model's residuals, nm (NaN outside the range).
+    amplitude_ref : ndarray (n,)
+        A_{ρ=ρ0} for the A-normalised parameters (NaN otherwise).
+    """
+
+    values: np.ndarray
+    forward: PolyModel
+    inverse: PolyModel
+    z_range: np.ndarray
+    sigma_z: np.ndarray
+    amplitude_ref: np.ndarray
+
+    def shifted(self, dz: np.ndarray) -> ShapeModel:
+        """Move onto the axis ``z − dz`` (dz of shape (n,), nm)."""
+        forward = PolyModel(self.forward.coef, self.forward.domain - dz[:, None])
+        return replace(
+            self,
+            forward=forward,
+            inverse=self.inverse.shifted(dz),
+            z_range=self.z_range - dz[:, None],
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class LocalModels:
+    """All local models of ``n`` calibration particles.
+
+    ``z_nm`` (n, n_z) is each particle's z of each plane on the models' axis (piezo z, or
+    tilt-corrected after :meth:`shifted`).
+    """
+
+    z_nm: np.ndarray
+    z_f: np.ndarray
+    in_focus: np.ndarray
+    amplitude: PolyModel
+    dx: PolyModel
+    dy: PolyModel
+    sigma_dx: np.ndarray
+    sigma_dy: np.ndarray
+    shapes: dict[str, ShapeModel]
+    theta: float | None
+
+    def shifted(self, dz: np.ndarray) -> LocalModels:
+        """Every model moved onto the axis ``z − dz`` (dz of shape (n,), nm)."""
+        dz = np.asarray(dz, dtype=np.float64)
+
+        def move(model: PolyModel) -> PolyModel:
+            return PolyModel(model.coef, model.domain - dz[:, None])
+
+        return replace(
+            self,
+            z_nm=self.z_nm - dz[:, None],
+            z_f=self.z_f - dz,
+            amplitude=move(self.amplitude),
+            dx=move(self.dx),
+            dy=move(self.dy),
+            shapes={k: v.shifted(dz) for k, v in self.shapes.items()},
+        )
+
+
+def sliding_rms(z: np.ndarray, residuals: np.ndarray, *, window_nm: float, n_params: int):
+    """RMS of ``residuals`` (n, n_z) in a sliding window of ``window_nm`` centred on each plane.
+
+    NaN residuals are ignored. The result is scaled by ``sqrt(m / (m − n_params))`` with ``m`` the
+    particle's number of residuals, the usual correction for the parameters the fit used. Planes
+    without residuals get NaN.
+    """
+    valid = np.isfinite(residuals)
+    sq = np.where(valid, residuals, 0.0) ** 2
+    near = (np.abs(z[:, :, None] - z[:, None, :]) <= window_nm / 2).astype(np.float64)
+    total = np.einsum("nk,njk->nj", sq, near)
+    count = np.einsum("nk,njk->nj", valid.astype(np.float64), near)
+    m = valid.sum(axis=1, keepdims=True).astype(np.float64)
+    dof = np.sqrt(m / np.maximum(m - n_params, 1.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.sqrt(total / count) * dof
+    return np.where(valid, rms, np.nan)
+
+
+def peak(model: PolyModel, *, n_grid: int = 801) -> tuple[np.ndarray, np.ndarray]:
+    """Position of each model's maximum inside its domain, and whether it is interior.
+
+    The maximum on a grid of ``n_grid`` points is refined by a parabola through its neighbours.
+    """
+    lo, hi = model.domain[:, 0], model.domain[:, 1]
+    u = np.linspace(0.0, 1.0, n_grid)
+    grid = lo[:, None] + (hi - lo)[:, None] * u
+    values = model(grid)
+    i = np.argmax(np.where(np.isfinite(values), values, -np.inf), axis=1)
+    interior = (i > 0) & (i < n_grid - 1) & model.valid
+    j = np.clip(i, 1, n_grid - 2)
+    rows = np.arange(len(model))
+    y0, y1, y2 = values[rows, j - 1], values[rows, j], values[rows, j + 1]
+    denom = y0 - 2 * y1 + y2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(denom < 0, 0.5 * (y0 - y2) / denom, 0.0)
+    step = (hi - lo) / (n_grid - 1)
+    return grid[rows, j] + np.clip(frac, -1, 1) * step, interior
+
+
+def _focus_window(z: np.ndarray, amp: np.ndarray, fraction: float, min_planes: int) -> np.ndarray:
+    """Contiguous planes around each trace's maximum where A ≥ fraction × max (at least
+    ``min_planes`` of them)."""
+    n, n_z = amp.shape
+    filled = np.where(np.isfinite(amp), amp, -np.inf)
+    top = np.argmax(filled, axis=1)
+    below = filled < fraction * filled[np.arange(n), top][:, None]
+    idx = np.arange(n_z)
+    left = np.max(np.where(below & (idx < top[:, None]), idx, -1), axis=1) + 1
+    right = np.min(np.where(below & (idx > top[:, None]), idx, n_z), axis=1) - 1
+    half = (min_planes + 1) // 2
+    left = np.minimum(left, np.maximum(top - half, 0))
+    right = np.maximum(right, np.minimum(top + half, n_z - 1))
+    return (idx >= left[:, None]) & (idx <= right[:, None]) & np.isfinite(amp)
+
+
+def _monotonic_range(
+    forward: PolyModel, z: np.ndarray, z_f: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The run of planes around focus over which s(z) is monotonic, as a (n, n_z) mask and a
+    (n, 2) z range. The run is the one containing z_f; its ends are where the sign of the
+    model's derivative on the planes changes."""
+    n, n_z = z.shape
+    slope = np.sign(forward.derivative()(z))
+    idx = np.arange(n_z)
+    centre = np.argmin(np.abs(z - z_f[:, None]), axis=1)
+    sign_c = slope[np.arange(n), centre][:, None]
+    breaks = slope != sign_c
+    left = np.max(np.where(breaks & (idx < centre[:, None]), idx, -1), axis=1) + 1
+    right = np.min(np.where(breaks & (idx > centre[:, None]), idx, n_z), axis=1) - 1
+    mask = (idx >= left[:, None]) & (idx <= right[:, None])
+    rows = np.arange(n)
+    return mask, np.stack([z[rows, left], z[rows, right]], axis=1)
+
+
+def _shape_model(
+    values: np.ndarray,
+    z: np.ndarray,
+    z_f: np.ndarray,
+    amplitude_ref: np.ndarray,
+    options: LocalOptions,
+) -> ShapeModel:
+    order = options.shape_order
+    forward = PolyModel.from_estimate(z, values, order=order)
+    mask, z_range = _monotonic_range(forward, z, z_f)
+    long_enough = (z_range[:, 1] - z_range[:, 0]) >= options.min_range_nm
+    ends = forward(z_range)
+    s_domain = np.sort(ends, axis=1)
+    use = mask & np.isfinite(values) & long_enough[:, None]
+    inverse = PolyModel.from_estimate(values, z, order=order, mask=use, domain=s_domain)
+    residuals = np.where(use, inverse.residuals(values, z), np.nan)
+    sigma = sliding_rms(z, residuals, window_nm=options.sigma_window_nm, n_params=order + 1)
+    z_range = np.where(inverse.valid[:, None], z_range, np.nan)
+    return ShapeModel(values, forward, inverse, z_range, sigma, amplitude_ref)
+
+
+def fit_local(
+    traces: Traces,
+    shapes: tuple[str, ...],
+    *,
+    theta: float | None = None,
+    options: LocalOptions = LocalOptions(),
+) -> LocalModels:
+    """Fit every local model of every particle of ``traces`` (piezo z axis).
+
+    Parameters
+    ----------
+    traces : Traces
+        Per-plane fit results.
+    shapes : tuple of str
+        Shape parameters to model (see :mod:`latentz.calibrate.shape`).
+    theta : float, optional
+        Astigmatism angle (rad), needed for "auto" and "auto_A".
+    options : LocalOptions
+        Orders and windows.
+    """
+    n = len(traces)
+    z = np.broadcast_to(traces.z_nm, (n, traces.z_nm.size)).copy()
+    amp = traces["amplitude"]
+    window = _focus_window(z, amp, options.focus_fraction, options.amplitude_order + 3)
+    amplitude = PolyModel.from_estimate(z, amp, order=options.amplitude_order, mask=window)
+    z_f, interior = peak(amplitude)
+    step = np.min(np.diff(traces.z_nm))
+    in_focus = interior & (z_f > traces.z_nm[0] + step) & (z_f < traces.z_nm[-1] - step)
+
+    lateral = {}
+    for axis in ("x", "y"):
+        model = PolyModel.from_estimate(z, traces[axis], order=options.lateral_order)
+        delta = model.shifted(model(z_f[:, None])[:, 0])
+        residuals = delta.residuals(z, traces[axis] - model(z_f[:, None]))
+        sigma = sliding_rms(
+            z, residuals, window_nm=options.sigma_window_nm, n_params=options.lateral_order + 1
+        )
+        lateral[axis] = (delta, sigma)
+
+    wx, wy, rho = traces["wx"], traces["wy"], traces["rho"]
+    models = {}
+    for shape in shapes:
+        ref = np.full(n, np.nan)
+        if uses_amplitude(shape):
+            ref = reference_amplitude(shape, wx, wy, rho, amp, theta=theta)
+        values = shape_value(shape, wx, wy, rho, amp, theta=theta, amplitude_ref=ref[:, None])
+        models[shape] = _shape_model(values, z, z_f, ref, options)
+    return LocalModels(
+        z_nm=z,
+        z_f=z_f,
+        in_focus=in_focus,
+        amplitude=amplitude,
+        dx=lateral["x"][0],
+        dy=lateral["y"][0],
+        sigma_dx=lateral["x"][1],
+        sigma_dy=lateral["y"][1],
+        shapes=models,
+        theta=theta,
+    )

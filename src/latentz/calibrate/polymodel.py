@@ -1,0 +1,179 @@
+"""Batches of one-dimensional polynomial models in a scaled Chebyshev basis.
+
+Every local calibration function of the paper (A(z) of order 5, Δx'(z), Δy'(z) and z(shape) of
+order 16; Supp. Table 2) is a polynomial per calibration particle. A 16th-order fit in raw
+nanometres is ill-conditioned, so each model maps its own domain ``[lo, hi]`` onto ``[-1, 1]`` and
+uses Chebyshev polynomials there; the fitted function is the same polynomial the paper writes as
+``sum_i C_i z**i``. One :class:`PolyModel` holds ``n`` such polynomials (one per particle) so that
+they are fitted and evaluated as arrays, without a Python loop over particles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.polynomial import chebyshev as cheb
+
+from latentz._shared.validate import check_array, check_int
+
+__all__ = ["PolyModel"]
+
+
+def _scale(x: np.ndarray, domain: np.ndarray) -> np.ndarray:
+    """Map ``x`` (n, ...) from each row's ``[lo, hi]`` onto ``[-1, 1]``."""
+    shape = (domain.shape[0],) + (1,) * (x.ndim - 1)
+    lo = domain[:, 0].reshape(shape)
+    hi = domain[:, 1].reshape(shape)
+    return (2.0 * x - lo - hi) / (hi - lo)
+
+
+@dataclass(frozen=True, eq=False)
+class PolyModel:
+    """``n`` polynomials, each in the Chebyshev basis of its own scaled domain.
+
+    Parameters
+    ----------
+    coef : ndarray (n, order + 1)
+        Chebyshev coefficients in the scaled variable ``t = (2 x - lo - hi) / (hi - lo)``.
+        A row of NaN marks a model that could not be estimated.
+    domain : ndarray (n, 2)
+        ``[lo, hi]`` of each model, in the units of ``x`` (nm for z, or the shape parameter's).
+
+    Examples
+    --------
+    >>> z = np.linspace(-3000.0, 3000.0, 61)
+    >>> model = PolyModel.from_estimate(z, 1e-3 * z + 2.0, order=3)
+    >>> float(np.round(model(np.array([1000.0]))[0], 6))
+    3.0
+    """
+
+    coef: np.ndarray
+    domain: np.ndarray
+
+    def __post_init__(self) -> None:
+        coef = np.array(self.coef, dtype=np.float64, ndmin=2)
+        domain = np.array(self.domain, dtype=np.float64, ndmin=2)
+        if domain.shape != (coef.shape[0], 2):
+            raise ValueError(
+                f"Expected `domain` to have shape ({coef.shape[0]}, 2), got {domain.shape}."
+            )
+        coef.setflags(write=False)
+        domain.setflags(write=False)
+        object.__setattr__(self, "coef", coef)
+        object.__setattr__(self, "domain", domain)
+
+    @classmethod
+    def from_estimate(
+        cls,
+        x: Any,
+        y: Any,
+        *,
+        order: int,
+        mask: Any = None,
+        domain: Any = None,
+    ) -> PolyModel:
+        """Least-squares fit (uniform weights) of one polynomial per row.
+
+        Parameters
+        ----------
+        x, y : array_like (n, m) or (m,)
+            Abscissae and ordinates; broadcast against each other. Non-finite pairs are ignored.
+        order : int
+            Polynomial order (>= 0).
+        mask : array_like of bool (n, m), optional
+            Points to use; the others are ignored.
+        domain : array_like (n, 2) or (2,), optional
+            Scaling domain; by default each row's extent of the points it uses.
+
+        Returns
+        -------
+        PolyModel
+            Rows with fewer than ``order + 1`` usable points (or a degenerate domain) get NaN
+            coefficients.
+        """
+        order = check_int("order", order, minimum=0)
+        xa, ya = np.broadcast_arrays(
+            np.atleast_2d(np.asarray(x, dtype=np.float64)),
+            np.atleast_2d(np.asarray(y, dtype=np.float64)),
+        )
+        use = np.isfinite(xa) & np.isfinite(ya)
+        if mask is not None:
+            use &= np.broadcast_to(np.asarray(mask, dtype=bool), xa.shape)
+        n = xa.shape[0]
+        if domain is None:
+            lo = np.min(np.where(use, xa, np.inf), axis=1)
+            hi = np.max(np.where(use, xa, -np.inf), axis=1)
+            dom = np.stack([lo, hi], axis=1)
+        else:
+            dom = np.broadcast_to(np.asarray(domain, dtype=np.float64), (n, 2)).copy()
+        ok = (use.sum(axis=1) >= order + 1) & np.all(np.isfinite(dom), axis=1)
+        ok &= dom[:, 1] > dom[:, 0]
+        safe = np.where(ok[:, None], dom, [[-1.0, 1.0]])
+        t = np.where(use, _scale(np.where(use, xa, 0.0), safe), 0.0)
+        vander = cheb.chebvander(t, order) * use[..., None]
+        rhs = np.where(use, ya, 0.0)
+        coef = np.einsum("nkm,nm->nk", np.linalg.pinv(vander), rhs)
+        coef[~ok] = np.nan
+        return cls(coef, dom)
+
+    @property
+    def order(self) -> int:
+        """Polynomial order."""
+        return self.coef.shape[1] - 1
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Boolean (n,): which models were estimated."""
+        return np.all(np.isfinite(self.coef), axis=1)
+
+    def __len__(self) -> int:
+        return self.coef.shape[0]
+
+    def __getitem__(self, index: Any) -> PolyModel:
+        """A sub-batch (an integer index keeps one row)."""
+        index = np.atleast_1d(np.arange(len(self))[index])
+        return PolyModel(self.coef[index], self.domain[index])
+
+    def __call__(self, x: Any) -> np.ndarray:
+        """Evaluate: ``x`` of shape (n,) or (n, m) gives one value per row (no range check)."""
+        xa = check_array("x", x, ndim=(1, 2), allow_empty=True).astype(np.float64)
+        if xa.shape[0] != len(self):
+            raise ValueError(f"Expected `x` to have {len(self)} rows, got shape {xa.shape}.")
+        t = _scale(xa, self.domain)
+        c = self.coef.T.reshape(self.coef.shape[1], len(self), *([1] * (xa.ndim - 1)))
+        return cheb.chebval(t, c, tensor=False)
+
+    def derivative(self) -> PolyModel:
+        """The derivative with respect to the unscaled variable."""
+        if self.order == 0:
+            return PolyModel(np.zeros_like(self.coef), self.domain)
+        span = self.domain[:, 1] - self.domain[:, 0]
+        return PolyModel(cheb.chebder(self.coef, axis=1) * (2.0 / span)[:, None], self.domain)
+
+    def shifted(self, offset: Any) -> PolyModel:
+        """The same polynomials minus a constant per row (``offset`` of shape (n,))."""
+        coef = self.coef.copy()
+        coef[:, 0] -= np.broadcast_to(np.asarray(offset, dtype=np.float64), (len(self),))
+        return PolyModel(coef, self.domain)
+
+    def contains(self, x: Any) -> np.ndarray:
+        """Boolean, same shape as ``x`` (n,) or (n, m): inside each row's domain."""
+        xa = np.asarray(x, dtype=np.float64)
+        shape = (len(self),) + (1,) * (xa.ndim - 1)
+        lo = self.domain[:, 0].reshape(shape)
+        hi = self.domain[:, 1].reshape(shape)
+        return (xa >= lo) & (xa <= hi)
+
+    def residuals(self, x: Any, y: Any) -> np.ndarray:
+        """``y - model(x)`` for data shaped like the fit's."""
+        return np.asarray(y, dtype=np.float64) - self(x)
+
+    def coefficients(self) -> np.ndarray:
+        """Power-series coefficients ``C_i`` (n, order + 1) in the scaled variable ``t``."""
+        k = self.coef.shape[1]
+        basis = np.zeros((k, k))
+        for j in range(k):
+            basis[: j + 1, j] = cheb.cheb2poly(np.eye(k)[j])[: j + 1]
+        return self.coef @ basis.T
