@@ -117,8 +117,9 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
 
     Returns ``(objective with the reference weights, objective with the weights at p)``; they
     differ only for WLSQ, whose reference weights come from ``mu_ref``. ``mu_out`` receives the
-    model at ``p`` (row-major). For MLE the deviance lacks the data-only constant
-    ``sum d' log d' - d'``, which cancels in every comparison.
+    model at ``p`` (row-major). For MLE the objective is the Poisson deviance itself (about one
+    per pixel at the optimum), not the log-likelihood with its large data-only constant, so that
+    its changes stay well above float64 rounding.
     """
     h, w = roi.shape
     x = p[0]
@@ -157,7 +158,7 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
                 ds = d + s2
                 wt = 1.0 / mus
                 if ds > 0.0:
-                    term = 2.0 * (mus - ds * math.log(mus))
+                    term = 2.0 * (mus - ds - ds * math.log(mus / ds))
                     res = ds * wt - 1.0
                 else:
                     term = 2.0 * mus
@@ -266,7 +267,7 @@ def _solve(lower, b, out):
 def _fit_one(roi, start, lower_b, upper_b, method, s2, max_iter, tol, scratch, out_p, out_e):
     """Fit one ROI from the natural-parameter ``start``; return (loglik, chi2, iters, converged).
 
-    ``scratch`` holds the work arrays: rows 0–2 of ``scratch[0]`` are model buffers of h*w.
+    ``scratch`` (2, h*w) holds the model at the current and at the trial parameters.
     """
     h, w = roi.shape
     npix = h * w
@@ -410,6 +411,9 @@ def _finish(
         out_e[4] *= wx
         out_e[5] *= wy
         out_e[6] *= 1.0 - rho * rho
+        # A position less certain than the ROI is wide (e.g. no spot at all) is no localization.
+        if not (out_e[0] < max(h, w) and out_e[1] < max(h, w)):
+            converged = False
     else:
         for k in range(_NP):
             out_e[k] = np.nan

@@ -102,7 +102,9 @@ def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return cols.ravel(), rows.ravel()
 
 
-def model_and_jacobian(params: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def model_and_jacobian(
+    params: np.ndarray, shape: tuple[int, int], *, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Expected counts and their derivatives with respect to the *internal* parameters.
 
     Parameters
@@ -116,8 +118,8 @@ def model_and_jacobian(params: np.ndarray, shape: tuple[int, int]) -> tuple[np.n
     -------
     mu : ndarray (n, h*w)
         Eq. 1 at the pixel centres, row-major.
-    jac : ndarray (n, h*w, 7)
-        d mu / d (x, y, A, B, log wx, log wy, atanh rho).
+    jac : ndarray (n, h*w, 7) or None
+        d mu / d (x, y, A, B, log wx, log wy, atanh rho); None unless ``jacobian``.
     """
     xp, yp = _pixel_grid(shape)
     x, y, amp, bg, wx, wy, rho = (params[:, k, None] for k in range(N_PARAMS))
@@ -129,6 +131,8 @@ def model_and_jacobian(params: np.ndarray, shape: tuple[int, int]) -> tuple[np.n
     q = u * a + v * b
     g = np.exp(-0.5 * q)
     ag = amp * g
+    if not jacobian:
+        return ag + bg, None
     jac = np.stack(
         [
             ag * a / wx,
@@ -170,7 +174,7 @@ def render_rois(params: Any, *, shape: tuple[int, int] | int) -> np.ndarray:
     hw = _check_shape(shape)
     if np.any(array[:, 4:6] <= 0) or np.any(np.abs(array[:, 6]) >= 1):
         raise ValueError("Expected wx, wy > 0 and |rho| < 1 in `params`.")
-    mu, _ = model_and_jacobian(array, hw)
+    mu, _ = model_and_jacobian(array, hw, jacobian=False)
     return mu.reshape(len(array), *hw)
 
 
@@ -201,7 +205,7 @@ def fisher_information(
     )
     jac_nat = jac / scale[:, None, :]
     weights = 1.0 / (mu + readnoise**2)
-    return np.einsum("npk,np,npl->nkl", jac_nat, weights, jac_nat)
+    return np.matmul((jac_nat * weights[:, :, None]).transpose(0, 2, 1), jac_nat)
 
 
 def crlb(params: Any, *, shape: tuple[int, int] | int, readnoise: float = 0.0) -> np.ndarray:

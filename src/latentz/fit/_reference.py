@@ -38,7 +38,8 @@ def _objective(d, p, shape, method, s2, scale, mu_ref):
         ds = d + s2
         wt = 1.0 / mus
         pos = ds > 0
-        terms = np.where(pos, 2.0 * (mus - ds * np.log(mus)), 2.0 * mus)
+        ratio = np.where(pos, mus / np.where(pos, ds, 1.0), 1.0)
+        terms = np.where(pos, 2.0 * (mus - ds - ds * np.log(ratio)), 2.0 * mus)
         res = np.where(pos, ds * wt - 1.0, -1.0)
         obj_ref = obj_new = terms.sum()
     elif method == WLSQ:
@@ -115,6 +116,8 @@ def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init
             )
         except np.linalg.LinAlgError:
             errors = np.full(7, np.nan)
+            converged = False
+        if not (errors[0] < max(h, w) and errors[1] < max(h, w)):
             converged = False
         m, ds = mu + s2, d + s2
         pos = ds > 0

@@ -49,7 +49,8 @@ class FitResult(NamedTuple):
         Levenberg–Marquardt iterations taken.
     converged : ndarray (n,) of bool
         False for a ROI with a non-finite pixel, a fit that stalled or hit ``max_iter``, a fit
-        that ended on a parameter bound, or a singular Fisher information.
+        that ended on a parameter bound (other than the background's), a singular Fisher
+        information, or a position bound (x_err or y_err) wider than the ROI.
     """
 
     params: np.ndarray
