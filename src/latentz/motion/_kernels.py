@@ -16,6 +16,7 @@ import numpy as np
 __all__ = ["kabsch_rotations_numba", "kabsch_rotations_numpy"]
 
 _BLOCK = 1024
+_PARALLEL_MIN = 20_000
 
 
 def kabsch_rotations_numpy(h: np.ndarray) -> np.ndarray:
@@ -44,7 +45,7 @@ def _top_eigvec4(n, e, v):
                     off += n[p, q] * n[p, q]
                 else:
                     scale += n[p, q] * n[p, q]
-        if off <= 1e-32 * scale or off == 0.0:
+        if off <= 1e-30 * scale:
             break
         for p in range(3):
             for q in range(p + 1, 4):
@@ -65,6 +66,8 @@ def _top_eigvec4(n, e, v):
                     aqk = n[q, k]
                     n[p, k] = c * apk - s * aqk
                     n[q, k] = s * apk + c * aqk
+                n[p, q] = 0.0
+                n[q, p] = 0.0
                 for k in range(4):
                     ekp = e[k, p]
                     ekq = e[k, q]
@@ -78,16 +81,32 @@ def _top_eigvec4(n, e, v):
         v[k] = e[k, best]
 
 
+@numba.njit(cache=True)
+def _kabsch_block(h, start, stop, out):
+    n = np.empty((4, 4))
+    e = np.empty((4, 4))
+    v = np.empty(4)
+    for i in range(start, stop):
+        _rotation_from_covariance(h, i, n, e, v, out)
+
+
 @numba.njit(cache=True, parallel=True)
-def kabsch_rotations_numba(h, out):
-    """Write into ``out`` (n, 3, 3) the rotations maximising ``tr(R h[i])`` for ``h`` (n, 3, 3)."""
+def _kabsch_parallel(h, out):
     n_blocks = (h.shape[0] + _BLOCK - 1) // _BLOCK
     for block in numba.prange(n_blocks):
-        n = np.empty((4, 4))
-        e = np.empty((4, 4))
-        q = np.empty(4)
-        for i in range(block * _BLOCK, min(h.shape[0], (block + 1) * _BLOCK)):
-            _rotation_from_covariance(h, i, n, e, q, out)
+        _kabsch_block(h, block * _BLOCK, min(h.shape[0], (block + 1) * _BLOCK), out)
+
+
+def kabsch_rotations_numba(h: np.ndarray, out: np.ndarray) -> None:
+    """Write into ``out`` (n, 3, 3) the rotations maximising ``tr(R h[i])`` for ``h`` (n, 3, 3).
+
+    Threads are used only for large batches: on a busy machine a parallel launch can cost
+    milliseconds, more than a small batch takes serially.
+    """
+    if h.shape[0] >= _PARALLEL_MIN:
+        _kabsch_parallel(h, out)
+    else:
+        _kabsch_block(h, 0, h.shape[0], out)
 
 
 @numba.njit(cache=True, inline="always")

@@ -97,7 +97,7 @@ def kabsch(
     b_bar = (w[..., None] * dst).sum(-2) / safe
     a = src - a_bar[..., None, :]
     b = dst - b_bar[..., None, :]
-    h = np.einsum("...k,...ki,...kj->...ij", w, a, b)
+    h = np.matmul(np.swapaxes(a * w[..., None], -1, -2), b)
     rot = rotations_from_covariance(h).reshape(h.shape)
     trans = b_bar - np.einsum("...ij,...j->...i", rot, a_bar)
     bad = (w > 0).sum(-1) < 3
