@@ -1,0 +1,168 @@
+"""Localize emitters in movies: detection and eq. 1 fits, chunk by chunk over frames.
+
+The movie (numpy, dask, or an image file opened lazily) is cut into chunks of frames. Each chunk is
+one task that reads its frames, converts them to photoelectrons, detects emitters and fits them
+(:mod:`latentz.detect`, :mod:`latentz.fit`), and returns a table. Tasks run on a dask scheduler in
+waves of a few chunks, so only a few chunks are in memory at once and a movie larger than memory
+works; the same code runs on a dask.distributed cluster.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import dask
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from latentz._shared.validate import check_choice, check_int
+from latentz.camera import Camera
+from latentz.detect import detect_arrays
+from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
+from latentz.io import as_frames
+
+__all__ = ["localize", "LOCALIZE_COLUMNS"]
+
+#: Columns of the table returned by `localize`, in order.
+LOCALIZE_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
+_LOCAL_SCHEDULERS = ("threads", "processes", "synchronous")
+
+
+def _localize_chunk(
+    block: np.ndarray,
+    first_frame: int,
+    camera: Camera | None,
+    roi_size: int,
+    threshold: float | None,
+    method: str,
+    sigma: float,
+) -> pd.DataFrame:
+    """Detect and fit the frames of one chunk; ``x, y`` in full-frame pixels."""
+    block = np.asarray(block)
+    photons = camera.to_photons(block) if camera is not None else block.astype(np.float64)
+    found = detect_arrays(photons, roi_size=roi_size, threshold=threshold, sigma=sigma)
+    if len(found.frame) == 0:
+        return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in LOCALIZE_COLUMNS})
+    readnoise = camera.readnoise if camera is not None else 0.0
+    table = result_table(fit_arrays(found.rois, method=method, readnoise=readnoise))
+    table["x"] += found.col0
+    table["y"] += found.row0
+    table.insert(0, "frame", first_frame + found.frame)
+    table["snr"] = found.snr
+    table["edge"] = found.edge
+    table["close_pair"] = found.close_pair
+    return table
+
+
+def _dtype(column: str) -> str:
+    if column in ("converged", "edge", "close_pair"):
+        return "bool"
+    return "int64" if column in ("frame", "iterations") else "float64"
+
+
+def _scheduler_and_width(scheduler: Any) -> tuple[Any, int, Any]:
+    """(scheduler for dask.compute, chunks per wave, client to close when done)."""
+    cores = os.cpu_count() or 1
+    if scheduler is None:
+        return "threads", cores, None
+    if isinstance(scheduler, str) and scheduler in _LOCAL_SCHEDULERS:
+        return scheduler, 1 if scheduler == "synchronous" else cores, None
+    if isinstance(scheduler, str):
+        if "://" not in scheduler:
+            check_choice("scheduler", scheduler, (*_LOCAL_SCHEDULERS, "<address>://host:port"))
+        from distributed import Client
+
+        client = Client(scheduler)
+        return client, max(1, sum(client.nthreads().values())), client
+    if hasattr(scheduler, "nthreads") and hasattr(scheduler, "get"):
+        return scheduler, max(1, sum(scheduler.nthreads().values())), None
+    raise TypeError(
+        "Expected `scheduler` to be None, 'threads', 'processes', 'synchronous', a "
+        f"dask.distributed address or Client, got {type(scheduler).__name__}."
+    )
+
+
+def _chunks(n_frames: int, chunk_frames: int) -> Iterator[tuple[int, int]]:
+    for start in range(0, n_frames, chunk_frames):
+        yield start, min(start + chunk_frames, n_frames)
+
+
+def localize(
+    frames: Any,
+    *,
+    camera: Camera | None = None,
+    roi_size: int = 11,
+    threshold: float | None = None,
+    method: str = "mle",
+    scheduler: Any = None,
+    progress: bool = False,
+    sigma: float = 1.5,
+    chunk_frames: int = 32,
+) -> pd.DataFrame:
+    """Detect and fit every emitter in a movie.
+
+    Parameters
+    ----------
+    frames : array_like (t, H, W) or (H, W), dask array, or path
+        Photoelectrons if ``camera`` is None, else ADU. A path is opened lazily
+        (:func:`latentz.io.as_frames`).
+    camera : Camera, optional
+        Converts ADU to photoelectrons (offset, gain, flatfield); its read noise enters the fit.
+    roi_size : int
+        Odd side of the square ROIs, in pixels.
+    threshold : float, optional
+        Detection threshold in units of the band-passed background noise (default 5).
+    method : {"mle", "wlsq", "lsq"}
+        Estimator, see :func:`latentz.fit.fit_rois`.
+    scheduler : None, "threads", "processes", "synchronous", str or distributed.Client
+        Where chunks run: None uses local threads; a string with ``://`` is a dask.distributed
+        scheduler address (a client is opened and closed here).
+    progress : bool
+        Show a progress bar over frames.
+    sigma : float
+        Smoothing scale of the detection band-pass, in pixels (about the spot width).
+    chunk_frames : int
+        Frames per task; a few chunks are held in memory at once.
+
+    Returns
+    -------
+    DataFrame
+        `LOCALIZE_COLUMNS`: ``frame``, every column of :func:`latentz.fit.fit_rois` with ``x, y``
+        in full-frame pixels (pixel ``[i, j]`` centred at ``x = j, y = i``), ``snr`` (detection
+        score in noise units), ``edge`` (the ROI was shifted inward at the frame's edge) and
+        ``close_pair`` (another detection lies inside this ROI). Rows are ordered by frame.
+    """
+    movie = as_frames(frames)
+    if camera is not None and not isinstance(camera, Camera):
+        raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
+    check_choice("method", method, METHODS)
+    roi_size = check_int("roi_size", roi_size, minimum=3)
+    chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)
+    if roi_size % 2 == 0 or roi_size > min(movie.shape[1:]):
+        raise ValueError(
+            f"Expected `roi_size` to be odd and at most {min(movie.shape[1:])}, got {roi_size}."
+        )
+    if camera is not None and camera.flatfield is not None:
+        if camera.flatfield.shape != movie.shape[1:]:
+            raise ValueError(
+                f"The camera's flatfield {camera.flatfield.shape} does not match the frames "
+                f"{movie.shape[1:]}."
+            )
+    chosen, width, client = _scheduler_and_width(scheduler)
+    options = (camera, roi_size, threshold, method, sigma)
+    tables = []
+    spans = list(_chunks(movie.shape[0], chunk_frames))
+    try:
+        with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
+            for w0 in range(0, len(spans), width):
+                wave = spans[w0 : w0 + width]
+                tasks = [dask.delayed(_localize_chunk)(movie[a:b], a, *options) for a, b in wave]
+                tables.extend(dask.compute(*tasks, scheduler=chosen))
+                bar.update(wave[-1][1] - wave[0][0])
+    finally:
+        if client is not None:
+            client.close()
+    return pd.concat(tables, ignore_index=True)

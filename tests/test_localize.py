@@ -1,0 +1,146 @@
+"""localize: Show 3 (detection on a 256 x 256 x 100 movie), input kinds, schedulers, chunks."""
+
+import dask.array as da
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+from movie_truth import emitter_movie, match
+from scipy.spatial import cKDTree
+
+from latentz.camera import Camera
+from latentz.fit import FIT_COLUMNS
+from latentz.localize import LOCALIZE_COLUMNS, localize
+
+
+@pytest.fixture(scope="module")
+def movie():
+    return emitter_movie(100, (256, 256), seed=2021, background=50.0, photons=(1e3, 1e4))
+
+
+@pytest.fixture(scope="module")
+def small():
+    return emitter_movie(12, (64, 80), seed=7, background=30.0, photons=(2e3, 2e4))
+
+
+def test_finds_99_percent_of_emitters_with_at_most_1_percent_false(movie):
+    frames, truth = movie
+    locs = localize(frames)
+    assert len(truth) > 4000
+    hits, false = match(truth, locs)
+    assert hits >= 0.99 * len(truth)
+    assert false <= 0.01 * len(locs)
+    assert locs.converged.mean() >= 0.995
+
+
+def test_positions_are_in_full_frame_pixels_and_at_the_bound(movie):
+    frames, truth = movie
+    locs = localize(frames[:20])
+    truth = truth[truth.frame < 20]
+    errors = []
+    for t, group in locs[locs.converged & ~locs.close_pair].groupby("frame"):
+        true_t = truth[truth.frame == t]
+        dist, idx = cKDTree(true_t[["x", "y"]].to_numpy()).query(group[["x", "y"]].to_numpy())
+        ok = dist < 2
+        errors.append(
+            (group[["x", "y"]].to_numpy()[ok] - true_t[["x", "y"]].to_numpy()[idx[ok]])
+            / group[["x_err", "y_err"]].to_numpy()[ok]
+        )
+    z = np.concatenate(errors)
+    # neighbours are >= 16 px away, so a 11 x 11 ROI sees one emitter: the errors are at the
+    # bound (sampling error of the spread for ~1000 emitters: about 0.02)
+    assert np.all(np.abs(z.mean(axis=0)) < 0.15)
+    assert np.all(np.abs(z.std(axis=0) - 1) < 0.1)
+
+
+def test_columns_are_frame_then_fit_columns_then_flags(small):
+    frames, _ = small
+    locs = localize(frames)
+    assert list(locs.columns) == list(LOCALIZE_COLUMNS)
+    assert list(locs.columns[1 : 1 + len(FIT_COLUMNS)]) == list(FIT_COLUMNS)
+    assert locs.frame.is_monotonic_increasing
+
+
+def test_numpy_dask_and_file_inputs_and_every_chunking_agree(small, tmp_path):
+    frames, _ = small
+    reference = localize(frames)
+    path = tmp_path / "movie.tif"
+    tifffile.imwrite(path, frames.astype(np.uint16))
+    variants = [
+        localize(da.from_array(frames, chunks=(5, 64, 80))),
+        localize(frames, chunk_frames=1, scheduler="synchronous"),
+        localize(frames, chunk_frames=5, scheduler="threads"),
+        localize(path),
+    ]
+    for table in variants:
+        pd.testing.assert_frame_equal(table, reference)
+
+
+def test_a_single_frame_is_a_movie_of_one(small):
+    frames, _ = small
+    one = localize(frames[3])
+    assert (one.frame == 0).all()
+    pd.testing.assert_frame_equal(
+        one.drop(columns="frame"),
+        localize(frames).query("frame == 3").reset_index(drop=True).drop(columns="frame"),
+    )
+
+
+def test_camera_adu_movie_matches_photons_with_read_noise(small):
+    frames, _ = small
+    rng = np.random.default_rng(9)
+    flat = rng.uniform(0.9, 1.1, frames.shape[1:])
+    cam = Camera(offset=100.0, gain=0.5, readnoise=1.5, flatfield=flat)
+    photons = frames + rng.normal(0.0, 1.5, frames.shape)
+    adu = photons * flat / cam.gain + cam.offset
+    with_cam = localize(adu, camera=cam)
+    assert len(with_cam) > 0
+    direct = localize(photons)
+    # same detections; the read noise only changes the weights slightly
+    assert len(with_cam) == len(direct)
+    np.testing.assert_allclose(with_cam[["x", "y"]], direct[["x", "y"]], atol=0.05)
+
+
+def test_distributed_client_gives_the_same_table(small):
+    distributed = pytest.importorskip("distributed")
+    frames, _ = small
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=2) as client:
+        table = localize(frames, scheduler=client, chunk_frames=4)
+    pd.testing.assert_frame_equal(table, localize(frames))
+
+
+def test_progress_bar_is_shown_on_request(small, capsys):
+    frames, _ = small
+    localize(frames, progress=True)
+    assert "frame" in capsys.readouterr().err
+    localize(frames, progress=False)
+    assert capsys.readouterr().err == ""
+
+
+def test_empty_movie_gives_an_empty_table_with_all_columns():
+    table = localize(np.full((3, 32, 32), 10.0))
+    assert len(table) == 0
+    assert list(table.columns) == list(LOCALIZE_COLUMNS)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"frames": np.zeros((2, 2, 16, 16))}, ValueError, "dimensions"),
+        ({"frames": np.zeros((0, 16, 16))}, ValueError, "non-empty"),
+        ({"roi_size": 10}, ValueError, "odd"),
+        ({"roi_size": 33}, ValueError, "at most 32"),
+        ({"method": "fast"}, ValueError, "method"),
+        ({"scheduler": "nope"}, ValueError, "scheduler"),
+        ({"scheduler": 3}, TypeError, "scheduler"),
+        ({"camera": "cam"}, TypeError, "Camera"),
+        ({"camera": Camera(flatfield=np.ones((8, 8)))}, ValueError, "flatfield"),
+        ({"chunk_frames": 0}, ValueError, "chunk_frames"),
+        ({"frames": "/no/such/file.tif"}, FileNotFoundError, "No such"),
+    ],
+)
+def test_bad_input_raises_clearly(kwargs, error, match):
+    args = {"frames": np.zeros((2, 32, 32))} | kwargs
+    frames = args.pop("frames")
+    with pytest.raises(error, match=match):
+        localize(frames, **args)
