@@ -121,7 +121,8 @@ def calibrate(
         Explicit (x, y) pixel positions of the particles in each stack instead of detection,
         for example ``[[(10, 10)]]`` for a stack holding a single bead.
     stage_offsets_px : array_like (n_stacks, 2), optional
-        (x, y) stage position of each stack on the substrate, pixels (used for the tilt plane).
+        (x, y) position of each stack's pixel [0, 0] in the pooled field, pixels; spots given to
+        :meth:`Calibration.apply` are in the same field pixels.
     threshold : float, optional
         Detection threshold in photons above the projection's median.
     method : {"mle", "wlsq", "lsq"}
@@ -223,7 +224,7 @@ def calibrate_traces(
 
     px = camera.pixel_size_nm
     position = traces.position()
-    substrate_nm = (position + traces.offset_px) * px
+    substrate_nm = position * px
     converged = np.mean(traces["converged"], axis=1)
     hard = {
         "fit_failed": converged < 0.8,
@@ -514,7 +515,7 @@ def _particle_table(cal: Calibration) -> pd.DataFrame:
             "y": pos[:, 1],
             "x_nm": pos[:, 0] * px,
             "y_nm": pos[:, 1] * px,
-            "z_f": local.z_f + cal.plane(*((pos + traces.offset_px) * px).T),
+            "z_f": local.z_f + cal.plane(*(pos * px).T),
             "z_f_nm": local.z_f,
             "in_focus": local.in_focus,
         }

@@ -12,7 +12,6 @@ feature                   meaning                                               
 ========================  =====================================================  ===========
 ``width_focus``           mean Gaussian width near focus (oversized, dimer)      neighbours
 ``log_photons``           log of the integrated signal near focus (size, dimer)  population
-``ellipticity_focus``     |e| near focus (dimer, debris)                         neighbours
 ``curve_rms``             RMS deviation of s(z − z_f) from the neighbours'       population
 ``z_f_offset``            z_f minus the neighbours' median, after tilt removal   population
 ========================  =====================================================  ===========
@@ -31,7 +30,6 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz.calibrate.local import LocalModels
-from latentz.calibrate.shape import ellipticity
 from latentz.calibrate.traces import Traces
 
 __all__ = ["particle_features", "robust_z", "neighbour_offsets", "cull", "FEATURE_TESTS"]
@@ -40,7 +38,6 @@ __all__ = ["particle_features", "robust_z", "neighbour_offsets", "cull", "FEATUR
 FEATURE_TESTS = {
     "width_focus": ("neighbours", "high"),
     "log_photons": ("population", "both"),
-    "ellipticity_focus": ("neighbours", "high"),
     "curve_rms": ("population", "high"),
     "z_f_offset": ("population", "both"),
 }
@@ -102,10 +99,8 @@ def particle_features(
     """
     z, z_f = local.z_nm, local.z_f
     wx, wy, rho, amp = traces["wx"], traces["wy"], traces["rho"], traces["amplitude"]
-    e1, e2 = ellipticity(wx, wy, rho)
     signal = 2 * np.pi * amp * np.abs(wx * wy) * np.sqrt(np.clip(1 - rho**2, 1e-12, None))
     width = _near_focus(z, z_f, (np.abs(wx) + np.abs(wy)) / 2, focus_half_nm)
-    ellip = _near_focus(z, z_f, np.hypot(e1, e2), focus_half_nm)
     photons = _near_focus(z, z_f, signal, focus_half_nm)
     forward = local.shapes[shape].forward
     offsets = np.linspace(-curve_half_nm, curve_half_nm, n_grid)
@@ -116,7 +111,6 @@ def particle_features(
     features = {
         "width_focus": neighbour_offsets(width, positions_nm, reference, k=k),
         "log_photons": np.log(np.clip(photons, 1e-12, None)),
-        "ellipticity_focus": neighbour_offsets(ellip, positions_nm, reference, k=k),
         "curve_rms": np.log(curve_rms),
         "z_f_offset": neighbour_offsets(z_f, positions_nm, reference, k=k),
     }

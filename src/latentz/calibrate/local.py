@@ -49,7 +49,7 @@ class LocalOptions:
     """
 
     amplitude_order: int = 5
-    focus_fraction: float = 0.5
+    focus_fraction: float = 0.6
     lateral_order: int = 16
     shape_order: int = 16
     sigma_window_nm: float = 500.0
@@ -252,6 +252,13 @@ def fit_local(
     amp = traces["amplitude"]
     window = _focus_window(z, amp, options.focus_fraction, options.amplitude_order + 3)
     amplitude = PolyModel.from_estimate(z, amp, order=options.amplitude_order, mask=window)
+    z_f, interior = peak(amplitude)
+    # second pass on a window of the same width centred on the first estimate: on a discrete
+    # plane grid the first window is asymmetric about the peak, which biases it slightly
+    half = np.sum(window, axis=1, keepdims=True) * np.median(np.diff(traces.z_nm)) / 2
+    centred = (np.abs(z - z_f[:, None]) <= half) & np.isfinite(amp) & interior[:, None]
+    centred |= window & ~interior[:, None]
+    amplitude = PolyModel.from_estimate(z, amp, order=options.amplitude_order, mask=centred)
     z_f, interior = peak(amplitude)
     step = np.min(np.diff(traces.z_nm))
     in_focus = interior & (z_f > traces.z_nm[0] + step) & (z_f < traces.z_nm[-1] - step)

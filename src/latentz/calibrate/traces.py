@@ -4,10 +4,8 @@ Each particle is found once per stack, on the maximum projection over z, and fol
 with a ROI that stays fixed: centred on the particle across the stack and never re-detected per
 plane. Every ROI of a stack is fitted in one ``fit_rois`` batch.
 
-Particles of all stacks (stage positions) are pooled into one field. The aberrations belong to the
-camera's field, so positions stay in camera pixels; each particle also keeps its stack's stage
-offset, so that its position on the substrate (camera position + offset), which the substrate tilt
-depends on, is known.
+Particles of all stacks (stage positions) are pooled into one field: each stack's offset, the
+field position of its pixel [0, 0], is added to the positions of its particles.
 """
 
 from __future__ import annotations
@@ -52,13 +50,12 @@ class Traces:
     z_nm : ndarray (n_z,)
         Piezo position of each plane, strictly increasing, in nm.
     data : dict of str -> ndarray (n, n_z)
-        Fit results (:data:`TRACE_COLUMNS`); ``x``, ``y`` in camera pixels of the full frame.
-        ``converged`` (bool) marks the fits to use; NaN marks missing values.
+        Fit results (:data:`TRACE_COLUMNS`); ``x``, ``y`` in pixels of the pooled field (stack
+        offsets included). ``converged`` (bool) marks the fits to use; NaN marks missing values.
     stack : ndarray of int (n,)
         Index of the stack each particle came from.
     offset_px : ndarray (n, 2)
-        (x, y) stage offset of the particle's stack: its substrate position is
-        ``(x + offset_x, y + offset_y)``.
+        (x, y) field offset of the particle's stack (already included in ``x``, ``y``).
     crowded : ndarray of bool (n,)
         Another particle lies inside this particle's ROI.
     """
@@ -246,8 +243,8 @@ def extract_traces(
         Explicit (x, y) pixel positions of the particles of each stack, instead of detection
         (for example a single bead in a small stack).
     stage_offsets_px : array_like (n_stacks, 2), optional
-        (x, y) stage position of each stack on the substrate, in pixels (for the tilt plane).
-        Default: all zero.
+        (x, y) position of each stack's pixel [0, 0] in the pooled field, pixels. Default: all
+        zero (one stack, or stacks that all cover the same field).
     threshold : float, optional
         Detection threshold, see :func:`find_particles`.
     method : str
@@ -293,6 +290,8 @@ def extract_traces(
             continue
         corners = _roi_corners(found, stack.shape[1:], roi_size)
         parts.append(_fit_stack(stack, corners, roi_size, camera, method))
+        parts[-1]["x"] = parts[-1]["x"] + offsets[s, 0]
+        parts[-1]["y"] = parts[-1]["y"] + offsets[s, 1]
         stack_index.append(np.full(found.shape[0], s))
         gap = np.abs(found[:, None, :] - found[None, :, :]).max(axis=2)
         np.fill_diagonal(gap, np.inf)

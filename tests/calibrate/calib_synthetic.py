@@ -14,7 +14,7 @@ import numpy as np
 from latentz.calibrate.traces import Traces
 
 
-def widths(z, z_f, *, theta, s0=1.5, c=400.0, d=600.0):
+def widths(z, z_f, *, theta, s0=1.5, c=500.0, d=1200.0):
     """(wx, wy, rho, sigma1, sigma2) of the noise-free image at piezo z."""
     s1 = s0 * np.sqrt(1 + ((z - z_f - c) / d) ** 2)
     s2 = s0 * np.sqrt(1 + ((z - z_f + c) / d) ** 2)
@@ -37,15 +37,34 @@ def make_traces(
     positions=None,
     seed=0,
     shift_nm_per_um=0.05,
+    defect=None,
+    noise_seed=None,
 ):
-    """Traces of ``n`` particles; returns (Traces, truth dict)."""
+    """Traces of ``n`` particles; returns (Traces, truth dict).
+
+    ``noise_seed`` draws the noise from its own generator (same particles, new noise).
+    ``defect`` (n,) of "none", "dimer" (two touching particles 2 s0 apart at a random angle:
+    twice the photons, the image stretched along the pair) or "large" (1.5 s0, 4x the photons).
+    """
     rng = np.random.default_rng(seed)
     z = np.arange(-3000.0, 3000.1, 50.0) if z_nm is None else np.asarray(z_nm, float)
     zf = rng.uniform(-150, 150, n) if z_f is None else np.asarray(z_f, float)
     pos = rng.uniform(0, 500, (n, 2)) if positions is None else np.asarray(positions, float)
     zz = z[None, :] - zf[:, None]
-    wx, wy, rho, s1, s2 = widths(z[None, :], zf[:, None], theta=theta)
-    amp = photons / (2 * np.pi * s1 * s2)
+    kind = np.full(n, "none") if defect is None else np.asarray(defect)
+    s0 = np.where(kind == "large", 2.25, 1.5)[:, None]
+    wx, wy, rho, s1, s2 = widths(z[None, :], zf[:, None], theta=theta, s0=s0)
+    n_ph = photons * np.select([kind == "dimer", kind == "large"], [2.0, 4.0], 1.0)[:, None]
+    amp = n_ph / (2 * np.pi * s1 * s2)
+    phi = rng.uniform(0, np.pi, n)[:, None]
+    half = np.where(kind == "dimer", 1.5, 0.0)[:, None]  # half the separation, px
+    sxx = wx**2 + (half * np.cos(phi)) ** 2
+    syy = wy**2 + (half * np.sin(phi)) ** 2
+    sxy = rho * wx * wy + half**2 * np.cos(phi) * np.sin(phi)
+    det = sxx * syy - sxy**2
+    amp = amp * np.sqrt(s1**2 * s2**2 / det)  # same photons spread over the larger image
+    wx, wy, rho = np.sqrt(sxx), np.sqrt(syy), sxy / np.sqrt(sxx * syy)
+    photons = n_ph
     # apparent lateral motion: a smooth cubic in z, in pixels
     dx = shift_nm_per_um * (zz / 1000) + 0.02 * (zz / 1000) ** 3
     dy = -0.5 * shift_nm_per_um * (zz / 1000) + 0.01 * (zz / 1000) ** 2
@@ -65,8 +84,17 @@ def make_traces(
         "rho": rho,
         "amplitude": amp,
     }
-    data = {k: v + noise * sd[k] * rng.standard_normal(v.shape) for k, v in true.items()}
+    noise_rng = rng if noise_seed is None else np.random.default_rng(noise_seed)
+    data = {k: v + noise * sd[k] * noise_rng.standard_normal(v.shape) for k, v in true.items()}
     data["background"] = np.full_like(amp, 10.0)
     data.update({f"{k}_err": np.broadcast_to(sd[k], amp.shape).copy() for k in sd})
-    truth = {"z_f": zf, "positions": pos, "true": true, "sd": sd, "dx": dx, "dy": dy}
+    truth = {
+        "z_f": zf,
+        "positions": pos,
+        "true": true,
+        "sd": sd,
+        "dx": dx,
+        "dy": dy,
+        "defect": kind,
+    }
     return Traces(z, data), truth

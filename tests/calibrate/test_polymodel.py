@@ -1,0 +1,64 @@
+"""PolyModel: batched scaled-Chebyshev least squares against analytic polynomials and NumPy."""
+
+import numpy as np
+import pytest
+from numpy.polynomial import Chebyshev, Polynomial
+
+from latentz.calibrate.polymodel import PolyModel
+
+Z = np.linspace(-3000.0, 3000.0, 121)
+
+
+def test_order16_in_nanometres_is_well_conditioned():
+    # a 16th-order polynomial in raw nm: exact data must come back to rounding error
+    rng = np.random.default_rng(1)
+    truth = Polynomial(rng.normal(size=17), domain=[-3000, 3000], window=[-1, 1])
+    model = PolyModel.from_estimate(Z, truth(Z), order=16)
+    z_fine = np.linspace(-3000, 3000, 1001)
+    assert np.max(np.abs(model(z_fine[None]) - truth(z_fine))) < 1e-9 * np.max(np.abs(truth(Z)))
+
+
+def test_batch_with_masks_matches_one_by_one_fits():
+    rng = np.random.default_rng(2)
+    y = rng.normal(size=(5, Z.size)).cumsum(axis=1)
+    mask = np.ones_like(y, dtype=bool)
+    mask[1, :30] = False
+    mask[3, 90:] = False
+    y[2, 7] = np.nan  # non-finite points are ignored
+    model = PolyModel.from_estimate(Z, y, order=6, mask=mask)
+    for i in range(5):
+        use = mask[i] & np.isfinite(y[i])
+        ref = Chebyshev.fit(Z[use], y[i, use], 6)
+        np.testing.assert_allclose(model[i](Z[None]), ref(Z)[None], rtol=1e-9, atol=1e-9)
+
+
+def test_too_few_points_gives_invalid_row():
+    y = np.vstack([Z * 2.0, Z * 3.0])
+    mask = np.ones_like(y, dtype=bool)
+    mask[1, 3:] = False  # 3 points for order 5
+    model = PolyModel.from_estimate(Z, y, order=5, mask=mask)
+    assert model.valid.tolist() == [True, False]
+    assert np.all(np.isnan(model(np.zeros(2))[1:]))
+
+
+def test_derivative_shift_contains_and_power_coefficients():
+    y = 1e-9 * Z**3 - 2e-4 * Z + 5.0
+    model = PolyModel.from_estimate(Z, y, order=3)
+    z = np.array([[-1234.0, 0.0, 2500.0]])
+    np.testing.assert_allclose(model.derivative()(z), 3e-9 * z**2 - 2e-4, rtol=1e-9)
+    np.testing.assert_allclose(model.shifted([5.0])(z), 1e-9 * z**3 - 2e-4 * z, atol=1e-9)
+    assert model.contains(np.array([[-3000.0, 3000.0, 3000.1]])).tolist() == [[True, True, False]]
+    t = z / 3000.0  # scaled variable of the domain [-3000, 3000]
+    power = model.coefficients()[0]
+    np.testing.assert_allclose(np.polyval(power[::-1], t), model(z), rtol=1e-12)
+    np.testing.assert_allclose(model.residuals(z, model(z)), 0.0, atol=1e-12)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="order"):
+        PolyModel.from_estimate(Z, Z, order=-1)
+    with pytest.raises(ValueError, match="domain"):
+        PolyModel(np.zeros((2, 3)), np.zeros((3, 2)))
+    model = PolyModel.from_estimate(Z, Z, order=1)
+    with pytest.raises(ValueError, match="rows"):
+        model(np.zeros(3))
