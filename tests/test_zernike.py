@@ -11,6 +11,7 @@ from latentz.zernike import (
     fit_zernike,
     lstsq_operator,
     noll_to_nm,
+    truncated_lstsq_operator,
     zernike_design,
     zernike_polar,
 )
@@ -135,6 +136,21 @@ def test_lstsq_operator_matches_numpy_lstsq():
     operator, condition = lstsq_operator(design)
     np.testing.assert_allclose(operator @ values, np.linalg.lstsq(design, values)[0], atol=1e-10)
     np.testing.assert_allclose(condition, np.linalg.cond(design), rtol=1e-10)
+
+
+def test_truncated_operator_keeps_most_terms_within_condition_limit():
+    rng = np.random.default_rng(4)
+    x, y = rng.uniform(0, 99, 150), rng.uniform(0, 99, 150)
+    design = zernike_design(x, y, field_shape=(100, 100), n_terms=120)
+    conds = np.array([np.linalg.cond(design[:, :p]) for p in range(1, 121)])
+    assert np.all(np.diff(conds) >= -1e-9 * conds[1:])  # non-decreasing, as the bisection needs
+    limit = np.sqrt(conds[10] * conds[-1])  # somewhere between 11 and 120 terms
+    expected = int(np.sum(conds <= limit))
+    operator, condition, p = truncated_lstsq_operator(design, max_terms=120, max_condition=limit)
+    assert p == expected and 11 <= p < 120
+    np.testing.assert_allclose(condition, conds[p - 1], rtol=1e-8)
+    np.testing.assert_allclose(operator, np.linalg.pinv(design[:, :p]), atol=1e-9)
+    assert truncated_lstsq_operator(design, max_terms=0, max_condition=10.0)[2] == 0
 
 
 def test_errors():

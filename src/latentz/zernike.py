@@ -39,6 +39,7 @@ __all__ = [
     "field_to_disk",
     "zernike_design",
     "lstsq_operator",
+    "truncated_lstsq_operator",
     "fit_zernike",
 ]
 
@@ -125,18 +126,19 @@ def zernike_polar(rho: np.ndarray, theta: np.ndarray, n_terms: int = 400) -> np.
     n, m = noll_to_nm(n_terms)
     am = np.abs(m)
     table = _radial_table(rho, set(zip(n.tolist(), am.tolist(), strict=True)))
-    out = np.empty((rho.size, n_terms), dtype=np.float64)
+    out = np.empty((n_terms, rho.size), dtype=np.float64)  # rows filled, returned transposed
     angular = {0: None}
     for k in range(1, int(am.max()) + 1):
         angular[k] = (np.cos(k * theta), np.sin(k * theta))
     for col, (nn, mm) in enumerate(zip(n.tolist(), m.tolist(), strict=True)):
         radial = table[(nn, abs(mm))]
         if mm == 0:
-            out[:, col] = np.sqrt(nn + 1.0) * radial
+            np.multiply(np.sqrt(nn + 1.0), radial, out=out[col])
         else:
             trig = angular[abs(mm)][0 if mm > 0 else 1]
-            out[:, col] = np.sqrt(2.0 * (nn + 1.0)) * radial * trig
-    return out
+            np.multiply(radial, trig, out=out[col])
+            out[col] *= np.sqrt(2.0 * (nn + 1.0))
+    return out.T
 
 
 def _check_field_shape(field_shape) -> tuple[int, int]:
@@ -193,11 +195,11 @@ def zernike_design(
     """
     rho, theta = field_to_disk(x_px, y_px, field_shape=field_shape)
     n_terms = check_int("n_terms", n_terms, minimum=1)
-    out = np.empty((rho.size, n_terms))
+    out = np.empty((n_terms, rho.size))
     for start in range(0, rho.size, _CHUNK):
         block = slice(start, start + _CHUNK)
-        out[block] = zernike_polar(rho[block], theta[block], n_terms)
-    return out
+        out[:, block] = zernike_polar(rho[block], theta[block], n_terms).T
+    return out.T
 
 
 def lstsq_operator(design: np.ndarray) -> tuple[np.ndarray, float]:
@@ -217,6 +219,48 @@ def lstsq_operator(design: np.ndarray) -> tuple[np.ndarray, float]:
     with np.errstate(divide="ignore"):
         inv = np.where(s > 0, 1.0 / s, 0.0)
     return (vt.T * inv) @ u.T, condition
+
+
+def truncated_lstsq_operator(
+    design: np.ndarray, *, max_terms: int, max_condition: float
+) -> tuple[np.ndarray | None, float, int]:
+    """Least-squares operator of the most leading columns of ``design`` that stay well conditioned.
+
+    Finds the largest ``p <= max_terms`` such that ``design[:, :p]`` has a condition number of
+    at most ``max_condition``. Adding a column never lowers the largest singular value nor raises
+    the smallest (interlacing), so the condition number is non-decreasing in ``p`` and bisection
+    finds ``p``. One QR factorisation serves every trial: ``design[:, :p] = Q[:, :p] R[:p, :p]``,
+    so only the small triangular blocks ``R[:p, :p]`` are decomposed.
+
+    Returns
+    -------
+    operator : ndarray (p, n_points) or None
+        ``pinv(design[:, :p])``; None if not even one column qualifies.
+    condition : float
+        Condition number of ``design[:, :p]`` (NaN if ``p = 0``).
+    p : int
+    """
+    p_max = min(int(max_terms), design.shape[1], design.shape[0])
+    if p_max < 1:
+        return None, float("nan"), 0
+    q, r = np.linalg.qr(design[:, :p_max])
+    u, s, vt = np.linalg.svd(r)
+    p = p_max
+    if not s[-1] > 0 or s[0] / s[-1] > max_condition:
+
+        def acceptable(p: int) -> bool:
+            sv = np.linalg.svd(r[:p, :p], compute_uv=False)
+            return bool(sv[-1] > 0 and sv[0] / sv[-1] <= max_condition)
+
+        good, bad = 0, p_max  # acceptable(good) (0: no term at all), not acceptable(bad)
+        while bad - good > 1:
+            mid = (good + bad) // 2
+            good, bad = (mid, bad) if acceptable(mid) else (good, mid)
+        p = good
+        if p == 0:
+            return None, float("nan"), 0
+        u, s, vt = np.linalg.svd(r[:p, :p])
+    return (vt.T / s) @ (q[:, :p] @ u).T, float(s[0] / s[-1]), p
 
 
 def fit_zernike(

@@ -234,6 +234,8 @@ def test_bad_input_errors():
         FieldModel.from_estimate(x, y, v, kind="zernike", field_shape=SHAPE, n_terms=0)
     with pytest.raises(ValueError, match="`points_per_term` to be finite and > 0"):
         FieldModel.from_estimate(x, y, v, kind="zernike", field_shape=SHAPE, points_per_term=0)
+    with pytest.raises(ValueError, match="`points_per_term` to be >= 1"):
+        FieldModel.from_estimate(x, y, v, kind="zernike", field_shape=SHAPE, points_per_term=0.5)
     model = FieldModel.from_estimate(x, y, np.column_stack([v, v]), **ok)
     with pytest.raises(ValueError, match=r"`columns` in \[0, 1\], got 2"):
         model(x[:2], y[:2], columns=[0, 2])

@@ -34,7 +34,7 @@ from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 from scipy.stats import kurtosis
 
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
-from latentz.zernike import field_to_disk, lstsq_operator, zernike_design
+from latentz.zernike import field_to_disk, truncated_lstsq_operator, zernike_design
 
 __all__ = ["FieldModel", "FIELD_MODEL_KINDS", "field_errors"]
 
@@ -240,12 +240,14 @@ class FieldModel:
         n_terms : int
             Zernike only: Noll indices ``1 ... n_terms`` (paper: 400).
         points_per_term : float
-            Zernike only. A column with ``n_valid`` particles uses
-            ``min(n_terms, floor(n_valid / points_per_term))`` terms, so that residuals keep
-            enough degrees of freedom to estimate the error; a column left with no term is NaN.
+            Zernike only, >= 1. A column with ``n_valid`` particles uses at most
+            ``min(n_terms, floor(n_valid / points_per_term))`` terms, so that its residuals keep
+            degrees of freedom to estimate the error (default 2: half the data are left over).
         max_condition : float
-            Zernike only. While the design matrix's condition number exceeds this, the number of
-            terms is cut by 10 %. Every reduction is reported by one ``UserWarning``.
+            Zernike only. Of those, the column uses the largest number of leading (Noll-ordered)
+            terms whose design matrix has a condition number <= ``max_condition``. A column left
+            with no term is NaN. All reductions below ``n_terms`` are reported by one
+            ``UserWarning``; :attr:`n_terms_effective` gives the terms used.
 
         Returns
         -------
@@ -288,6 +290,11 @@ class FieldModel:
         if kind == "zernike":
             options["n_terms"] = check_int("n_terms", n_terms, minimum=1)
             options["points_per_term"] = check_positive("points_per_term", points_per_term)
+            if options["points_per_term"] < 1:
+                raise ValueError(
+                    f"Expected `points_per_term` to be >= 1 (no more terms than particles), "
+                    f"got {points_per_term!r}."
+                )
             options["max_condition"] = check_positive("max_condition", max_condition)
             fit = _fit_zernike(x, y, vals, mask, (h, w), **{k: options[k] for k in _ZOPTS})
         return cls(kind, x, y, vals, mask, (h, w), options, **fit)
@@ -470,7 +477,7 @@ _ZOPTS = ("n_terms", "points_per_term", "max_condition")
 
 
 def _fit_zernike(x, y, values, valid, field_shape, *, n_terms, points_per_term, max_condition):
-    """Least-squares Zernike coefficients, one SVD per distinct validity pattern."""
+    """Least-squares Zernike coefficients, one factorisation per distinct validity pattern."""
     m = values.shape[1]
     design = zernike_design(x, y, field_shape=field_shape, n_terms=n_terms)
     coef = np.zeros((n_terms, m))
@@ -482,12 +489,11 @@ def _fit_zernike(x, y, values, valid, field_shape, *, n_terms, points_per_term, 
     for k, pattern in enumerate(patterns):
         cols = np.flatnonzero(inverse == k)
         rows = np.flatnonzero(pattern)
-        p = min(n_terms, int(rows.size // points_per_term))
-        while p >= 1:
-            operator, cond = lstsq_operator(design[rows, :p])
-            if cond <= max_condition:
-                break
-            p = int(0.9 * p)
+        operator, cond, p = truncated_lstsq_operator(
+            design[rows],
+            max_terms=min(n_terms, int(rows.size // points_per_term)),
+            max_condition=max_condition,
+        )
         if p < n_terms:
             reduced.append((cols.size, p))
         if p < 1:
