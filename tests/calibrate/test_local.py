@@ -6,7 +6,7 @@ from calib_synthetic import make_traces, widths
 from numpy.polynomial import chebyshev as cheb
 
 from latentz.calibrate.local import LocalOptions, fit_local, sliding_rms
-from latentz.calibrate.shape import shape_sigma, shape_value
+from latentz.calibrate.shape import shape_value
 
 SHAPES = ("rho", "rho_w", "rho_A")
 

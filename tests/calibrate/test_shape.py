@@ -72,7 +72,9 @@ def test_shape_sigma_matches_monte_carlo():
     wx, wy, rho, amp, ref = 1.8, 1.6, 0.25, 300.0, 340.0
     errors = (0.02, 0.015, 0.01, 4.0)
     n = 20000
-    draws = [p + e * rng.standard_normal(n) for p, e in zip((wx, wy, rho, amp), errors)]
+    draws = [
+        p + e * rng.standard_normal(n) for p, e in zip((wx, wy, rho, amp), errors, strict=True)
+    ]
     for shape in ("rho", "rho_w", "rho_A", "auto", "auto_A"):
         mc = np.std(shape_value(shape, *draws, theta=0.3, amplitude_ref=ref))
         predicted = shape_sigma(shape, wx, wy, rho, amp, errors, theta=0.3, amplitude_ref=ref)

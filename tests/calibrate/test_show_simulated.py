@@ -2,9 +2,9 @@
 
 One simulated dataset (module fixture): 300 particles of 1 µm at the paper's signal level (5e5
 photons), 3 % defective (dimers and particles of twice the diameter), on a substrate tilted by
-2 mrad, imaged through ±3 µm in 121 planes (50 nm steps) at 16 stage positions covering the 2048² field. The
-aberrations are the simulator's paper-like map without its random part, whose field curvature is
-symmetric about the field centre: a random planar part of the field curvature would be
+2 mrad, imaged through ±3 µm in 121 planes (50 nm steps) at 16 stage positions covering the 2048²
+field. The aberrations are the simulator's paper-like map without its random part, whose field
+curvature is symmetric about the field centre: a random planar part of the field curvature would be
 indistinguishable from substrate tilt, for this method and any other that levels by best focus.
 """
 
@@ -14,7 +14,6 @@ import pytest
 from scipy.spatial import cKDTree
 
 from latentz.calibrate.calibration import calibrate
-from latentz.calibrate.tilt import TiltPlane
 from latentz.calibrate.traces import extract_traces, traces_table
 from latentz.camera import Camera
 from latentz.simulate._render import render_expected
@@ -155,7 +154,7 @@ def test_nearest_localization_of_test_particles(sim):
     plane = cal.plane(*(cal.positions[chosen] * 130.0).T)
     defocus = z_cal + plane + truth["z_nm"].to_numpy()[chosen]
     offset = 3.0 * np.stack([np.cos(z_cal), np.sin(z_cal)], axis=1)
-    frames, spots = [], []
+    spots = []
     for i, k in enumerate(chosen):
         corner = np.rint(cal.positions[k]).astype(int) - 16
         emitter = pd.DataFrame(

@@ -131,8 +131,9 @@ def calibrate(
         ``tilt`` (bool, default True): fit and remove the substrate tilt;
         ``cull`` (bool, default True) and ``cull_threshold`` (robust z-score, default 6),
         ``neighbours`` (default 8) — with fewer than 10 usable particles only outright failures
-        are culled, as population statistics need a population; and the :class:`~latentz.calibrate.local.LocalOptions`
-        fields (``amplitude_order``, ``focus_fraction``, ``lateral_order``, ``shape_order``,
+        are culled, as population statistics need a population; and the
+        :class:`~latentz.calibrate.local.LocalOptions` fields (``amplitude_order``,
+        ``focus_fraction``, ``lateral_order``, ``shape_order``,
         ``sigma_window_nm``, ``min_range_nm``).
 
     Returns
