@@ -56,8 +56,11 @@ def drift(tracks: pd.DataFrame, *, frames: Iterable[int] | None = None) -> pd.Se
     if pos.shape[0] < 2:
         raise ValueError(f"Expected a static segment of at least 2 frames, got {pos.shape[0]}.")
     step = pos[1:] - pos[:-1]
-    with np.errstate(invalid="ignore"):
-        shift = np.nanmean(step, axis=1)  # NaN where no particle is seen in both frames
+    both = np.isfinite(step).all(-1)
+    count = both.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # NaN where no particle is seen in both frames
+        shift = np.where(both[..., None], step, 0.0).sum(axis=1) / count[:, None]
     ok = np.isfinite(shift).all(axis=1)
     if not ok.any():
         raise ValueError("No pair of consecutive frames shares a particle in `tracks`.")
