@@ -162,7 +162,12 @@ def calibrate(
             from latentz.io import read_stack
 
             stack = read_stack(stack)
-        loaded.append(check_array(f"stacks[{s}]", stack, ndim=3))
+        stack = check_array(f"stacks[{s}]", stack, ndim=3)
+        if stack.shape[0] != z.size:
+            raise ValueError(
+                f"Stack {s} has {stack.shape[0]} planes but `z_nm` has {z.size} values."
+            )
+        loaded.append(stack)
     order = np.argsort(z)
     loaded = [stack[order] for stack in loaded]
     traces = extract_traces(

@@ -1,0 +1,212 @@
+"""Figures of the local calibration: the paper's Fig. 2 (one particle) and Fig. 3 (the field).
+
+Both functions return a matplotlib Figure and, given ``path``, also write it as PNG atomically.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from latentz._shared.atomic import atomic_path
+from latentz._shared.validate import check_int
+from latentz.calibrate.calibration import PAPER_SHAPES, Calibration
+
+__all__ = ["figure2", "figure3"]
+
+_LABELS = {
+    "rho": "ρ",
+    "rho_w": "ρ_w",
+    "rho_A": "ρ_A",
+    "auto": "e_θ (|w_x|+|w_y|)/2",
+    "auto_A": "e_θ / A_n",
+}
+_MARKERS = {"rho": "^", "rho_w": "s", "rho_A": "o", "auto": "D", "auto_A": "v"}
+
+
+def _save(fig: Any, path: str | os.PathLike | None) -> None:
+    if path is not None:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=110)
+
+
+def figure2(
+    cal: Calibration,
+    particle: int,
+    *,
+    shapes: tuple[str, ...] = ("rho", "rho_A"),
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Fig. 2 for one calibration particle.
+
+    Panels: (a) apparent position x', y' through focus coloured by z, with the position at z_f;
+    (b, c) Δx'(z), Δy'(z) (nm) with their polynomial and σ_Δ; (d) A(z) with its order-5 peak
+    model and z_f; (e, f, …) each shape parameter in ``shapes`` with its inverse model over the
+    monotonic range and σ_z. Middle row: residuals; bottom row: σ(z) from the residuals.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    n = len(cal.particles)
+    p = check_int("particle", particle, minimum=0)
+    if p >= n:
+        raise ValueError(f"Expected `particle` < {n} (number of calibration particles), got {p}.")
+    local, tr = cal.local, cal.traces
+    px = cal.camera.pixel_size_nm
+    z = local.z_nm[p]
+    zf = local.z_f[p]
+    zz = np.linspace(np.nanmin(z), np.nanmax(z), 400)
+    cols = 3 + len(shapes)
+    fig, axes = plt.subplots(
+        3,
+        cols + 1,
+        figsize=(3.1 * (cols + 1), 7.5),
+        height_ratios=[3, 1.2, 1.2],
+        squeeze=False,
+    )
+    ax = axes[0, 0]
+    sc = ax.scatter(tr["x"][p] * px, tr["y"][p] * px, c=z, s=10, cmap="viridis")
+    x0, y0 = (m[p : p + 1](np.array([zf]))[0] for m in (_abs_model(cal, "x"), _abs_model(cal, "y")))
+    ax.plot(x0 * px, y0 * px, "o", mfc="white", mec="k", ms=8)
+    ax.set(xlabel="x' (nm)", ylabel="y' (nm)", title=f"(a) particle {p}")
+    ax.set_aspect("equal", adjustable="datalim")
+    fig.colorbar(sc, ax=ax, label="z (nm)")
+    for row in (1, 2):
+        axes[row, 0].axis("off")
+
+    panels = [
+        (
+            "(b) Δx' (nm)",
+            (tr["x"][p] - _abs_model(cal, "x")[p : p + 1](np.array([zf]))[0]) * px,
+            local.dx[p : p + 1](zz[None])[0] * px,
+            local.sigma_dx[p] * px,
+            "σ_Δx' (nm)",
+        ),
+        (
+            "(c) Δy' (nm)",
+            (tr["y"][p] - _abs_model(cal, "y")[p : p + 1](np.array([zf]))[0]) * px,
+            local.dy[p : p + 1](zz[None])[0] * px,
+            local.sigma_dy[p] * px,
+            "σ_Δy' (nm)",
+        ),
+    ]
+    for col, (title, data, curve, sigma, slabel) in enumerate(panels, start=1):
+        top, mid, bottom = axes[0, col], axes[1, col], axes[2, col]
+        top.plot(z, data, "k.", ms=3)
+        top.plot(zz, curve, "g-", lw=1.5)
+        top.set_title(title)
+        model = local.dx if col == 1 else local.dy
+        mid.plot(z, data - model[p : p + 1](z[None])[0] * px, "k.", ms=2)
+        mid.set_ylabel("residual")
+        bottom.plot(z, sigma, "b-")
+        bottom.set(xlabel="z (nm)", ylabel=slabel)
+
+    top, mid, bottom = axes[0, 3], axes[1, 3], axes[2, 3]
+    amp = tr["amplitude"][p]
+    top.plot(z, amp, "k.", ms=3)
+    dom = local.amplitude.domain[p]
+    za = np.linspace(dom[0], dom[1], 200)
+    top.plot(za, local.amplitude[p : p + 1](za[None])[0], "g-", lw=1.5)
+    top.axvline(zf, color="r", lw=1)
+    top.set_title(f"(d) A, z_f = {zf:.0f} nm")
+    inside = (z >= dom[0]) & (z <= dom[1])
+    mid.plot(z[inside], (amp - local.amplitude[p : p + 1](z[None])[0])[inside], "k.", ms=2)
+    mid.set_ylabel("residual")
+    bottom.axis("off")
+
+    for col, shape in enumerate(shapes, start=4):
+        top, mid, bottom = axes[0, col], axes[1, col], axes[2, col]
+        model = local.shapes[shape]
+        values = model.values[p]
+        top.plot(z, values, "k.", ms=3)
+        lo, hi = model.inverse.domain[p]
+        if model.inverse.valid[p]:
+            ss = np.linspace(lo, hi, 300)
+            top.plot(model.inverse[p : p + 1](ss[None])[0], ss, "g-", lw=1.5)
+            res = z - model.inverse[p : p + 1](values[None])[0]
+            mid.plot(z, np.where(np.isfinite(model.sigma_z[p]), res, np.nan), "k.", ms=2)
+        top.set_title(f"({chr(ord('e') + col - 4)}) {_LABELS[shape]}")
+        mid.set_ylabel("z residual (nm)")
+        bottom.plot(z, model.sigma_z[p], "b-")
+        bottom.set(xlabel="z (nm)", ylabel="σ_z (nm)")
+    for col in range(1, cols + 1):
+        axes[0, col].set_xlabel("z (nm)")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def _abs_model(cal: Calibration, axis: str):
+    """x'(z) or y'(z) (pixels): Δ model plus the position at z_f."""
+    from latentz.calibrate.polymodel import PolyModel
+
+    delta = cal.local.dx if axis == "x" else cal.local.dy
+    data = cal.traces[axis]
+    offset = np.nanmedian(data - delta(cal.local.z_nm), axis=1)
+    return PolyModel(delta.coef, delta.domain).shifted(-offset)
+
+
+def interpercentile(values: np.ndarray) -> float:
+    """68 % interpercentile range (16th to 84th percentile) of the finite values."""
+    finite = values[np.isfinite(values)]
+    return float(np.subtract(*np.percentile(finite, [84, 16]))) if finite.size else np.nan
+
+
+def figure3(
+    cal: Calibration,
+    *,
+    shape: str | None = None,
+    range_nm: float = 6000.0,
+    ranges_nm: Any = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Fig. 3: z(shape) of many particles, the map and histogram of mean σ_z over ``range_nm``,
+    and the mean and 68 % interpercentile range of mean σ_z against the axial range for ρ, ρ_w
+    and ρ_A (and the chosen shape, if another). Culled particles are left out."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    shape = shape or cal.shape
+    kept = ~cal.culled
+    ranges = np.arange(1000.0, 6001.0, 500.0) if ranges_nm is None else np.asarray(ranges_nm)
+    sigma = cal.mean_sigma_z(shape, range_nm)
+    fig, axes = plt.subplots(1, 5, figsize=(22, 4.2))
+    ax = axes[0]
+    model = cal.local.shapes[shape].inverse
+    order = np.argsort(np.where(np.isfinite(sigma), sigma, np.inf))
+    show = [i for i in order if kept[i] and model.valid[i]]
+    for i in show[:: max(1, len(show) // 60)]:
+        ss = np.linspace(*model.domain[i], 100)
+        ax.plot(ss, model[i : i + 1](ss[None])[0], lw=0.6, color="0.6")
+    ax.set(xlabel=_LABELS.get(shape, shape), ylabel="z (nm)", title=f"(a) z({_LABELS[shape]})")
+    ax = axes[1]
+    pos = cal.positions * cal.camera.pixel_size_nm / 1000
+    sc = ax.scatter(pos[kept, 0], pos[kept, 1], c=sigma[kept], s=12, cmap="magma")
+    ax.set(xlabel="x (µm)", ylabel="y (µm)", title=f"(b) mean σ_z over {range_nm / 1000:g} µm")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.invert_yaxis()
+    fig.colorbar(sc, ax=ax, label="σ_z (nm)")
+    ax = axes[2]
+    finite = sigma[kept & np.isfinite(sigma)]
+    ax.hist(finite, bins=30, color="0.4")
+    ax.set(xlabel="mean σ_z (nm)", ylabel="particles", title=f"(c) n = {finite.size}")
+    for name in dict.fromkeys((*PAPER_SHAPES, shape)):
+        per_range = [cal.mean_sigma_z(name, r)[kept] for r in ranges]
+        means = [np.nanmean(v) if np.isfinite(v).any() else np.nan for v in per_range]
+        spread = [interpercentile(v) for v in per_range]
+        axes[3].plot(ranges / 1000, means, marker=_MARKERS[name], label=_LABELS[name])
+        axes[4].plot(ranges / 1000, spread, marker=_MARKERS[name], label=_LABELS[name])
+    axes[3].set(xlabel="axial range (µm)", ylabel="mean σ_z (nm)", title="(d)", yscale="log")
+    axes[4].set(
+        xlabel="axial range (µm)", ylabel="68 % range of σ_z (nm)", title="(e)", yscale="log"
+    )
+    axes[3].legend()
+    fig.tight_layout()
+    _save(fig, path)
+    return fig

@@ -1,0 +1,129 @@
+"""calibrate / calibrate_traces / Calibration.apply: validation, culling reasons, range limits,
+intensity normalisation, and the batch evaluation the widefield stage uses."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from calib_synthetic import make_traces
+
+from latentz.calibrate.calibration import calibrate, calibrate_traces
+from latentz.calibrate.traces import traces_table
+from latentz.camera import Camera
+
+CAM = Camera(offset=0.0, gain=1.0, readnoise=0.0, pixel_size_nm=100.0)
+
+
+@pytest.fixture(scope="module")
+def calibrated():
+    # 60 particles on a 500 px field; one of them is never in focus within ±3 µm
+    z_f = np.random.default_rng(20).uniform(-150, 150, 60)
+    z_f[5] = 3600.0
+    traces, truth = make_traces(60, z_f=z_f, seed=20)
+    return calibrate_traces(traces, camera=CAM, field_model="nearest"), traces, truth
+
+
+def test_never_in_focus_is_culled_with_its_reason(calibrated):
+    cal, _, _ = calibrated
+    table = cal.particles
+    assert table.loc[5, "culled"]
+    assert "never_in_focus" in table.loc[5, "cull_reason"]
+    assert not table.drop(index=5)["culled"].any()
+    for column in (
+        "x",
+        "y",
+        "z_f",
+        "z_f_nm",
+        "sigma_z_rho",
+        "sigma_z_rho_w",
+        "sigma_z_rho_A",
+        "z_min_nm",
+        "z_max_nm",
+        "culled",
+        "reason",
+        "z_coef",
+        "dx_coef",
+        "dy_coef",
+    ):
+        assert column in table
+
+
+def test_independent_images_localize_with_nearest_models(calibrated):
+    cal, _, truth = calibrated
+    test, _ = make_traces(60, z_f=truth["z_f"], seed=20, noise_seed=21)
+    out = cal.apply(traces_table(test))
+    assert (out["cal_particle"] != 5).all()  # the culled particle is never used
+    # z on the tilt-corrected axis: this particle's z is z_piezo minus the plane at it
+    z_true = out["z_nm"] * 0 + np.tile(test.z_nm, 60) - cal.plane(out["x"] * 100, out["y"] * 100)
+    keep = out["in_range"] & (np.abs(z_true) < 2000) & (out["particle"] != 5)
+    err = (out["z_nm"] - z_true)[keep]
+    sigma = out["z_err_nm"][keep]
+    # the reported z_err_nm is a 1σ error: the normalised errors have unit RMS (±10 %)
+    assert np.sqrt(np.mean((err / sigma) ** 2)) == pytest.approx(1.0, abs=0.15)
+    assert np.isfinite(out.loc[keep, ["x_nm", "y_nm", "x_err_nm", "y_err_nm"]]).all().all()
+
+
+def test_out_of_range_is_never_extrapolated(calibrated):
+    cal, traces, _ = calibrated
+    spots = traces_table(traces.subset([0]))
+    spots["rho"] = 0.99  # with a faint image: beyond any calibrated ρ_A
+    spots["amplitude"] *= 1e-3
+    out = cal.apply(spots)
+    assert not out["in_range"].any()
+    assert out[["z_nm", "x_nm", "y_nm", "z_err_nm"]].isna().all().all()
+    spots.loc[0, ["x", "y"]] = np.nan  # a failed fit
+    assert not cal.apply(spots)["in_range"].any()
+
+
+def test_track_normalisation_makes_rho_a_intensity_independent(calibrated):
+    cal, _, truth = calibrated
+    test, _ = make_traces(60, z_f=truth["z_f"], seed=20, noise_seed=22)
+    spots = traces_table(test.subset([10]))
+    spots["amplitude"] *= 2.0  # an emitter twice as bright as the calibration particle
+    by_calibration = cal.apply(spots)
+    by_track = cal.apply(spots, amplitude_reference="particle")
+    z_true = np.asarray(test.z_nm) - cal.plane(*(cal.positions[10] * 100))
+    near = np.abs(z_true) < 1500
+    rms_track = np.sqrt(np.nanmean((by_track["z_nm"] - z_true)[near] ** 2))
+    rms_cal = np.sqrt(np.nanmean((by_calibration["z_nm"] - z_true)[near] ** 2))
+    assert rms_track < 3 * cal.particles["sigma_z"].iloc[10]
+    assert rms_cal > 5 * rms_track
+
+
+def test_batch_evaluation_over_particles(calibrated):
+    cal, _, _ = calibrated
+    z = cal.local_z(0.0)
+    assert z.shape == (60,)
+    assert np.isnan(cal.local_z(50.0)).all()
+    dx, dy = cal.local_delta(np.zeros(60))
+    # Δ(z_f) = 0 by definition (eqs. 2–3)
+    dx_f, dy_f = cal.local_delta(cal.local.z_f)
+    np.testing.assert_allclose(dx_f[cal.local.in_focus], 0.0, atol=1e-9)
+    np.testing.assert_allclose(dy_f[cal.local.in_focus], 0.0, atol=1e-9)
+    assert dx.shape == dy.shape == (60,)
+
+
+def test_bad_input(calibrated):
+    cal, traces, _ = calibrated
+    z = np.arange(30.0) * 100
+    with pytest.raises(ValueError, match="at least 18 planes"):
+        calibrate(np.zeros((10, 32, 32)), np.arange(10.0))
+    with pytest.raises(ValueError, match="strictly monotonic"):
+        calibrate(np.zeros((30, 32, 32)), np.r_[z[:10], z[11], z[10], z[12:]])
+    flat = np.random.default_rng(1).poisson(100.0, (30, 40, 40)).astype(np.uint16)
+    with pytest.raises(ValueError, match="No particles found"):
+        calibrate(flat, z, camera=Camera(offset=0.0), field_model="nearest")
+    with pytest.raises(NotImplementedError, match="nearest"):
+        calibrate_traces(traces, field_model="zernike")
+    with pytest.raises(TypeError, match="Unknown calibration option"):
+        calibrate_traces(traces, field_model="nearest", colour="red")
+    with pytest.raises(ValueError, match="shape"):
+        calibrate_traces(traces, field_model="nearest", shape="sigma")
+    with pytest.raises(ValueError, match="missing column"):
+        cal.apply(pd.DataFrame({"x": [1.0], "y": [1.0]}))
+    with pytest.raises(ValueError, match="particle"):
+        cal.apply(
+            traces_table(traces.subset([0])).drop(columns="particle"),
+            amplitude_reference="particle",
+        )
+    with pytest.raises(ValueError, match="planes"):
+        calibrate(np.zeros((30, 32, 32)), np.arange(31.0))
