@@ -133,10 +133,13 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
     iom = 1.0 / om
     iwx = 1.0 / wx
     iwy = 1.0 / wy
-    for k in range(_NP):
-        grad[k] = 0.0
-        for m in range(k, _NP):
-            hess[k, m] = 0.0
+    g0 = g1 = g2 = g3 = g4 = g5 = g6 = 0.0
+    h00 = h01 = h02 = h03 = h04 = h05 = h06 = 0.0
+    h11 = h12 = h13 = h14 = h15 = h16 = 0.0
+    h22 = h23 = h24 = h25 = h26 = 0.0
+    h33 = h34 = h35 = h36 = 0.0
+    h44 = h45 = h46 = 0.0
+    h55 = h56 = h66 = 0.0
     obj_ref = 0.0
     obj_new = 0.0
     for i in range(h):
@@ -180,47 +183,83 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
             j4 = ag * u * a
             j5 = ag * v * b
             j6 = ag * (u * v - rho * q)
-            grad[0] += j0 * res
-            grad[1] += j1 * res
-            grad[2] += g * res
-            grad[3] += res
-            grad[4] += j4 * res
-            grad[5] += j5 * res
-            grad[6] += j6 * res
+            g0 += j0 * res
+            g1 += j1 * res
+            g2 += g * res
+            g3 += res
+            g4 += j4 * res
+            g5 += j5 * res
+            g6 += j6 * res
             w0 = wt * j0
             w1 = wt * j1
             w2 = wt * g
             w4 = wt * j4
             w5 = wt * j5
             w6 = wt * j6
-            hess[0, 0] += w0 * j0
-            hess[0, 1] += w0 * j1
-            hess[0, 2] += w0 * g
-            hess[0, 3] += w0
-            hess[0, 4] += w0 * j4
-            hess[0, 5] += w0 * j5
-            hess[0, 6] += w0 * j6
-            hess[1, 1] += w1 * j1
-            hess[1, 2] += w1 * g
-            hess[1, 3] += w1
-            hess[1, 4] += w1 * j4
-            hess[1, 5] += w1 * j5
-            hess[1, 6] += w1 * j6
-            hess[2, 2] += w2 * g
-            hess[2, 3] += w2
-            hess[2, 4] += w2 * j4
-            hess[2, 5] += w2 * j5
-            hess[2, 6] += w2 * j6
-            hess[3, 3] += wt
-            hess[3, 4] += w4
-            hess[3, 5] += w5
-            hess[3, 6] += w6
-            hess[4, 4] += w4 * j4
-            hess[4, 5] += w4 * j5
-            hess[4, 6] += w4 * j6
-            hess[5, 5] += w5 * j5
-            hess[5, 6] += w5 * j6
-            hess[6, 6] += w6 * j6
+            h00 += w0 * j0
+            h01 += w0 * j1
+            h02 += w0 * g
+            h03 += w0
+            h04 += w0 * j4
+            h05 += w0 * j5
+            h06 += w0 * j6
+            h11 += w1 * j1
+            h12 += w1 * g
+            h13 += w1
+            h14 += w1 * j4
+            h15 += w1 * j5
+            h16 += w1 * j6
+            h22 += w2 * g
+            h23 += w2
+            h24 += w2 * j4
+            h25 += w2 * j5
+            h26 += w2 * j6
+            h33 += wt
+            h34 += w4
+            h35 += w5
+            h36 += w6
+            h44 += w4 * j4
+            h45 += w4 * j5
+            h46 += w4 * j6
+            h55 += w5 * j5
+            h56 += w5 * j6
+            h66 += w6 * j6
+    # Scalar accumulators (not array elements) let LLVM keep the sums in registers.
+    grad[0] = g0
+    grad[1] = g1
+    grad[2] = g2
+    grad[3] = g3
+    grad[4] = g4
+    grad[5] = g5
+    grad[6] = g6
+    hess[0, 0] = h00
+    hess[0, 1] = h01
+    hess[0, 2] = h02
+    hess[0, 3] = h03
+    hess[0, 4] = h04
+    hess[0, 5] = h05
+    hess[0, 6] = h06
+    hess[1, 1] = h11
+    hess[1, 2] = h12
+    hess[1, 3] = h13
+    hess[1, 4] = h14
+    hess[1, 5] = h15
+    hess[1, 6] = h16
+    hess[2, 2] = h22
+    hess[2, 3] = h23
+    hess[2, 4] = h24
+    hess[2, 5] = h25
+    hess[2, 6] = h26
+    hess[3, 3] = h33
+    hess[3, 4] = h34
+    hess[3, 5] = h35
+    hess[3, 6] = h36
+    hess[4, 4] = h44
+    hess[4, 5] = h45
+    hess[4, 6] = h46
+    hess[5, 5] = h55
+    hess[5, 6] = h56
+    hess[6, 6] = h66
     for k in range(_NP):
         for m in range(k + 1, _NP):
             hess[m, k] = hess[k, m]
@@ -264,23 +303,26 @@ def _solve(lower, b, out):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _fit_one(roi, start, lower_b, upper_b, method, s2, max_iter, tol, scratch, out_p, out_e):
+def _fit_one(
+    roi, start, lower_b, upper_b, method, s2, max_iter, tol, scratch, vecs, mats, out_p, out_e
+):
     """Fit one ROI from the natural-parameter ``start``; return (loglik, chi2, iters, converged).
 
-    ``scratch`` (2, h*w) holds the model at the current and at the trial parameters.
+    Work arrays, allocated once per chunk of ROIs: ``scratch`` (2, h*w) holds the model at the
+    current and at the trial parameters, ``vecs`` (7, 7) and ``mats`` (3, 7, 7) the rest.
     """
     h, w = roi.shape
     npix = h * w
     mu_ref = scratch[0]
     mu_try = scratch[1]
-    hess = np.empty((_NP, _NP))
-    hess_try = np.empty((_NP, _NP))
-    lower = np.empty((_NP, _NP))
-    grad = np.empty(_NP)
-    grad_try = np.empty(_NP)
-    delta = np.empty(_NP)
-    p = np.empty(_NP)
-    p_try = np.empty(_NP)
+    hess = mats[0]
+    hess_try = mats[1]
+    lower = mats[2]
+    grad = vecs[0]
+    grad_try = vecs[1]
+    delta = vecs[2]
+    p = vecs[3]
+    p_try = vecs[4]
     p[0] = start[0]
     p[1] = start[1]
     p[2] = start[2]
@@ -356,6 +398,7 @@ def _fit_one(roi, start, lower_b, upper_b, method, s2, max_iter, tol, scratch, o
         hess,
         grad,
         lower,
+        vecs,
         converged,
         iters,
         out_p,
@@ -376,6 +419,7 @@ def _finish(
     hess,
     grad,
     lower,
+    vecs,
     converged,
     iters,
     out_p,
@@ -400,8 +444,9 @@ def _finish(
     for k in range(_NP):
         if k != 3 and (p[k] <= lower_b[k] or p[k] >= upper_b[k]):
             converged = False
-    unit = np.zeros(_NP)
-    col = np.empty(_NP)
+    unit = vecs[2]
+    col = vecs[1]
+    unit[:] = 0.0
     if _cholesky(hess, lower):
         for k in range(_NP):
             unit[k] = 1.0
@@ -462,7 +507,9 @@ def fit_batch(
     n, h, w = rois.shape
     for c in numba.prange(n_chunks):
         scratch = np.empty((2, h * w))
-        first = np.empty(_NP)
+        vecs = np.empty((7, _NP))
+        mats = np.empty((3, _NP, _NP))
+        first = vecs[6]
         for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):
             roi = rois[k]
             finite = True
@@ -485,7 +532,19 @@ def fit_batch(
             else:
                 _start(roi, first)
             loglik, chi2, iters, conv = _fit_one(
-                roi, first, lower_b, upper_b, method, s2, max_iter, tol, scratch, out_p[k], out_e[k]
+                roi,
+                first,
+                lower_b,
+                upper_b,
+                method,
+                s2,
+                max_iter,
+                tol,
+                scratch,
+                vecs,
+                mats,
+                out_p[k],
+                out_e[k],
             )
             out_loglik[k] = loglik
             out_chi2[k] = chi2
