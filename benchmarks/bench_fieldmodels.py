@@ -18,6 +18,7 @@ import warnings
 import numpy as np
 
 from latentz.calibrate.fieldmodels import FieldModel, field_errors
+from latentz.zernike import zernike_design
 
 SHAPE = (512, 512)
 
@@ -69,6 +70,16 @@ def main() -> None:
     _timed(f"zernike eval, {args.points} points, own column each", model, qx, qy, columns=qcols)
     _timed(f"zernike eval, {args.points} points x 10 columns", _middle_columns(model, 10), qx, qy)
     _timed("zernike residuals, all columns", model.residuals)
+
+    def apply_like() -> None:
+        """One shared design; z from 2 columns, then dx and dy from 2 columns each."""
+        p = int(model.n_terms_effective.max())
+        design = zernike_design(qx, qy, field_shape=SHAPE, n_terms=p)
+        pair = np.column_stack([qcols, np.minimum(qcols + 1, m - 1)])
+        model(qx, qy, columns=pair, design=design)
+        model(qx, qy, columns=np.hstack([pair, pair[:, ::-1]]), design=design)
+
+    _timed(f"apply-like zernike, {args.points} points (1 design, 2 + 4 columns each)", apply_like)
 
     nearest = FieldModel.from_estimate(
         x, y, values, kind="nearest", field_shape=SHAPE, valid=ranged

@@ -84,6 +84,21 @@ def test_batched_equals_per_column_and_masks_are_respected(kind):
         np.testing.assert_allclose(resid[rows, c], single.residuals(), rtol=1e-12, atol=1e-12)
         assert np.all(np.isnan(resid[~rows, c]))
     np.testing.assert_allclose(pointwise, full[np.arange(qx.size), cols], rtol=1e-13, atol=1e-13)
+    pairs = rng.integers(0, m, (qx.size, 2))
+    np.testing.assert_allclose(
+        batch(qx, qy, columns=pairs),
+        full[np.arange(qx.size)[:, None], pairs],
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    if kind == "zernike":  # a design shared between models gives the same values
+        design = zernike_design(qx, qy, field_shape=SHAPE, n_terms=20)
+        np.testing.assert_allclose(batch(qx, qy, design=design), full, rtol=1e-13, atol=1e-13)
+        with pytest.raises(ValueError, match=r"`design` to have shape \(40, >= 15\)"):
+            batch(qx, qy, design=design[:, :10])
+    else:
+        with pytest.raises(TypeError, match="`design` applies to Zernike models only"):
+            batch(qx, qy, design=np.zeros((qx.size, 15)))
     assert np.nanmax(np.abs(full)) < 1e3
 
 
@@ -239,7 +254,7 @@ def test_bad_input_errors():
     model = FieldModel.from_estimate(x, y, np.column_stack([v, v]), **ok)
     with pytest.raises(ValueError, match=r"`columns` in \[0, 1\], got 2"):
         model(x[:2], y[:2], columns=[0, 2])
-    with pytest.raises(ValueError, match="`columns` to have shape"):
+    with pytest.raises(ValueError, match="`columns` to have 2 rows"):
         model(x[:2], y[:2], columns=[0])
     with pytest.raises(TypeError, match="`columns` to have a numeric dtype"):
         model(x[:2], y[:2], columns=[0.5, 1.0])

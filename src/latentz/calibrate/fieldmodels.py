@@ -308,20 +308,28 @@ class FieldModel:
     def n_columns(self) -> int:
         return self.values.shape[1]
 
-    def __call__(self, x_px: Any, y_px: Any, *, columns: Any = None) -> np.ndarray:
+    def __call__(
+        self, x_px: Any, y_px: Any, *, columns: Any = None, design: np.ndarray | None = None
+    ) -> np.ndarray:
         """Evaluate the model at field positions.
 
         Parameters
         ----------
         x_px, y_px : float or ndarray (n_points,)
             Positions in pixels, inside the field (pixel edges included). NaN gives NaN.
-        columns : ndarray (n_points,) of int, optional
-            If given, point ``i`` is evaluated only in column ``columns[i]``.
+        columns : ndarray (n_points,) or (n_points, k) of int, optional
+            If given, point ``i`` is evaluated only in column ``columns[i]`` (or in the ``k``
+            columns ``columns[i, :]``, e.g. the two tabulated columns around a spot's shape
+            value).
+        design : ndarray (n_points, >= p), optional
+            Zernike only: ``zernike_design(x_px, y_px, field_shape=..., n_terms=p)`` computed
+            once and shared by several models at the same points, with ``p`` at least
+            ``max(n_terms_effective)`` of each.
 
         Returns
         -------
         ndarray
-            ``(n_points, m)``, or ``(n_points,)`` if ``columns`` is given or the model was
+            ``(n_points, m)``; or the shape of ``columns``; or ``(n_points,)`` if the model was
             estimated from one-dimensional values. NaN where the model is undefined (outside the
             hull of valid particles for ``"natural"``, a column without valid particles).
         """
@@ -329,39 +337,57 @@ class FieldModel:
         finite = np.isfinite(x) & np.isfinite(y)
         field_to_disk(x[finite], y[finite], field_shape=self.field_shape)
         if columns is not None:
-            cols = np.atleast_1d(check_array("columns", columns, ndim=(0, 1), dtype_kind="iu"))
-            if cols.shape != x.shape:
-                raise ValueError(f"Expected `columns` to have shape {x.shape}, got {cols.shape}.")
-            if cols.size and (cols.min() < 0 or cols.max() >= self.n_columns):
+            cols = check_array("columns", columns, ndim=(0, 1, 2), dtype_kind="iu")
+            shape_out = np.shape(np.atleast_1d(cols))
+            cols = np.atleast_1d(cols).reshape(shape_out[0], -1)
+            if shape_out[0] != x.size:
                 raise ValueError(
-                    f"Expected `columns` in [0, {self.n_columns - 1}], got "
-                    f"{cols[(cols < 0) | (cols >= self.n_columns)][0]}."
+                    f"Expected `columns` to have {x.size} rows (one per point), got shape "
+                    f"{shape_out}."
                 )
-            out = np.full(x.size, np.nan)
+            bad = (cols < 0) | (cols >= self.n_columns)
+            if np.any(bad):
+                raise ValueError(
+                    f"Expected `columns` in [0, {self.n_columns - 1}], got {cols[bad][0]}."
+                )
+            out = np.full(cols.shape, np.nan)
         else:
             cols = None
             out = np.full((x.size, self.n_columns), np.nan)
         idx = np.flatnonzero(finite)
         if self.kind == "zernike":
-            self._eval_zernike(x, y, idx, cols, out)
+            self._eval_zernike(x, y, idx, cols, out, design)
+        elif design is not None:
+            raise TypeError(f"`design` applies to Zernike models only, not {self.kind!r}.")
+        elif cols is None:
+            self._eval_interpolant(x, y, idx, None, out)
         else:
-            self._eval_interpolant(x, y, idx, cols, out)
-        if cols is None and self.options["squeeze"]:
-            return out[:, 0]
-        return out
+            for k in range(cols.shape[1]):
+                self._eval_interpolant(x, y, idx, cols[:, k], out[:, k])
+        if cols is not None:
+            return out.reshape(shape_out)
+        return out[:, 0] if self.options["squeeze"] else out
 
-    def _eval_zernike(self, x, y, idx, cols, out) -> None:
-        p = int(self.n_terms_effective.max(initial=0))
-        coef = self.coefficients[: max(p, 1)]
+    def _eval_zernike(self, x, y, idx, cols, out, design) -> None:
+        p = max(int(self.n_terms_effective.max(initial=0)), 1)
+        coef = self.coefficients[:p]
+        if design is not None:
+            design = check_array("design", design, ndim=2, dtype_kind="f", allow_empty=True)
+            if design.shape[0] != x.size or design.shape[1] < p:
+                raise ValueError(
+                    f"Expected `design` to have shape ({x.size}, >= {p}), got {design.shape}."
+                )
+        coef_rows = None if cols is None else np.ascontiguousarray(coef.T)  # gathered by column
         for start in range(0, idx.size, _CHUNK):
             sel = idx[start : start + _CHUNK]
-            design = zernike_design(
-                x[sel], y[sel], field_shape=self.field_shape, n_terms=coef.shape[0]
-            )
-            if cols is None:
-                out[sel] = design @ coef
+            if design is None:
+                block = zernike_design(x[sel], y[sel], field_shape=self.field_shape, n_terms=p)
             else:
-                out[sel] = np.einsum("ij,ji->i", design, coef[:, cols[sel]])
+                block = design[sel, :p]
+            if cols is None:
+                out[sel] = block @ coef
+            else:
+                out[sel] = np.einsum("ij,ikj->ik", block, coef_rows[cols[sel]])
 
     def _eval_interpolant(self, x, y, idx, cols, out) -> None:
         queries = np.column_stack([x, y])
@@ -380,7 +406,7 @@ class FieldModel:
                 out[np.ix_(sel, in_pattern)] = block
             else:
                 contrib = w * self.values[rows[pj], cols[sel][pi]]
-                res = np.bincount(pi, contrib, minlength=sel.size)
+                res = np.bincount(pi, contrib, minlength=sel.size).astype(np.float64)
                 res[~ok] = np.nan
                 out[sel] = res
 
