@@ -11,6 +11,11 @@ the square root of the unit-cell area, ``pitch / sqrt(|det [a_1 a_2]|)``, and it
 comes from the least-squares covariance with the noise variance estimated from the residual
 scatter, so it is honest for independent localization errors. What the lattice cannot describe
 (distortion) can optionally be modelled by a Zernike field of the residual displacement.
+
+The uncertainty is statistical. A field of apparent shifts whose linear part mimics a change of
+magnification (for example from field-dependent aberrations of the aperture images) is absorbed
+into the basis and does not show in the residuals; on the simulator's default aberrations this
+amounts to about 7e-5 of the pixel size (tests/calibrate/test_apertures.py).
 """
 
 from __future__ import annotations
@@ -83,6 +88,8 @@ class ApertureLattice:
         Positions kept by the fit (others were outliers or duplicates of a lattice site).
     sigma_px : float
         Residual scatter per coordinate of the used positions, pixels.
+    positions_px : ndarray (n, 2)
+        The measured ``(x, y)`` positions, pixels.
     distortion : FieldModel or None
         Zernike model of the residual displacement, columns ``(dx, dy)`` in pixels.
     """

@@ -23,7 +23,9 @@ validity pattern and then applied to every column sharing it.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -192,7 +194,7 @@ class FieldModel:
     values: np.ndarray
     valid: np.ndarray
     field_shape: tuple[int, int]
-    options: dict
+    options: Mapping[str, Any]
     coefficients: np.ndarray | None = None
     n_terms_effective: np.ndarray | None = None
     condition: np.ndarray | None = None
@@ -203,7 +205,9 @@ class FieldModel:
         patterns, inverse = np.unique(self.valid.T, axis=0, return_inverse=True)
         object.__setattr__(self, "_patterns", patterns)
         object.__setattr__(self, "_pattern_of", inverse.ravel())
-        for name in ("x_px", "y_px", "values", "valid", "coefficients", "n_terms_effective"):
+        object.__setattr__(self, "options", MappingProxyType(dict(self.options)))
+        arrays = ("x_px", "y_px", "values", "valid", "coefficients", "n_terms_effective")
+        for name in (*arrays, "condition"):
             arr = getattr(self, name)
             if arr is not None:
                 arr.flags.writeable = False
