@@ -92,6 +92,15 @@ class ApertureLattice:
         The measured ``(x, y)`` positions, pixels.
     distortion : FieldModel or None
         Zernike model of the residual displacement, columns ``(dx, dy)`` in pixels.
+
+    Examples
+    --------
+    >>> i, j = (a.ravel() for a in np.meshgrid(np.arange(5), np.arange(5), indexing="ij"))
+    >>> fit = ApertureLattice.from_estimate(10 + 40.0 * j, 12 + 40.0 * i, pitch_nm=5000.0)
+    >>> round(fit.pixel_size_nm, 9)
+    125.0
+    >>> fit.predict(np.array([[-2, -2]])).round(9).tolist()  # indices count from the centre
+    [[10.0, 12.0]]
     """
 
     pitch_nm: float
@@ -205,7 +214,7 @@ class ApertureLattice:
     @property
     def pixel_size_nm(self) -> float:
         """Mean pixel size in the sample plane, ``pitch / sqrt(unit-cell area in px²)``, nm."""
-        return self.pitch_nm / np.sqrt(abs(np.linalg.det(self.basis_px)))
+        return float(self.pitch_nm / np.sqrt(abs(np.linalg.det(self.basis_px))))
 
     @property
     def pixel_size_err_nm(self) -> float:

@@ -186,6 +186,15 @@ class FieldModel:
         Terms actually fitted per column (Zernike); ``None`` for interpolants.
     condition : ndarray (m,) or None
         Condition number of each column's design matrix (Zernike).
+
+    Examples
+    --------
+    >>> x, y = np.array([10.0, 50.0, 90.0, 30.0]), np.array([10.0, 80.0, 20.0, 60.0])
+    >>> model = FieldModel.from_estimate(x, y, 2.0 * x, kind="nearest", field_shape=(100, 100))
+    >>> model(np.array([12.0, 88.0]), np.array([11.0, 25.0])).tolist()
+    [20.0, 180.0]
+    >>> model.residuals().tolist()  # leave-one-out: value minus the nearest other particle's
+    [-40.0, 40.0, 80.0, -40.0]
     """
 
     kind: str
