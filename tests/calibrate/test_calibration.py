@@ -127,3 +127,67 @@ def test_bad_input(calibrated):
         )
     with pytest.raises(ValueError, match="planes"):
         calibrate(np.zeros((30, 32, 32)), np.arange(31.0))
+
+
+@pytest.mark.parametrize("shape", ["auto", "auto_A"])
+def test_auto_shapes_work_with_a_cylindrical_lens(shape):
+    # astigmatism along the camera axes: ρ ≡ 0 carries nothing, e_θ does
+    traces, truth = make_traces(40, theta=0.0, seed=40)
+    cal = calibrate_traces(traces, camera=CAM, shape=shape, field_model="nearest")
+    assert abs(cal.local.theta) < 0.01
+    test, _ = make_traces(
+        40, theta=0.0, z_f=truth["z_f"], positions=truth["positions"], seed=40, noise_seed=41
+    )
+    out = cal.apply(traces_table(test))
+    z_true = np.tile(test.z_nm, 40) - cal.plane(out["x"] * 100, out["y"] * 100)
+    keep = out["in_range"] & (np.abs(z_true) < 1500)
+    assert keep.mean() > 0.4
+    err = (out["z_nm"] - z_true)[keep]
+    # errors consistent with the reported 1σ uncertainties
+    assert np.sqrt(np.mean((err / out["z_err_nm"][keep]) ** 2)) == pytest.approx(1.0, abs=0.15)
+
+
+def test_auto_reproduces_rho_w_and_rho_a_at_pi_over_4(calibrated):
+    cal, traces, _ = calibrated
+    auto = calibrate_traces(traces, camera=CAM, shape="auto", field_model="nearest")
+    auto_a = calibrate_traces(traces, camera=CAM, shape="auto_A", field_model="nearest")
+    # θ from the data is π/4 within its noise, so e_θ ≈ e2 = ρ (wx = wy on this microscope)
+    assert auto.local.theta == pytest.approx(np.pi / 4, abs=0.01)
+    for mine, paper in ((auto, "rho_w"), (auto_a, "rho_A")):
+        ratio = mine.particles["sigma_z"] / cal.particles[f"sigma_z_{paper}"]
+        assert np.nanmedian(ratio) == pytest.approx(1.0, abs=0.05)
+        np.testing.assert_allclose(
+            mine.particles["z_max_nm"], cal.particles[f"z_max_{paper}"], atol=100.0
+        )
+
+
+def test_images_with_decreasing_z_give_the_same_calibration():
+    from latentz.fit import render_rois
+
+    rng = np.random.default_rng(50)
+    z = np.linspace(-2000.0, 2000.0, 41)
+    traces, _ = make_traces(
+        4, z_nm=z, noise=0.0, positions=[[20, 20], [60, 20], [20, 60], [60, 60]]
+    )
+    stack = np.full((z.size, 80, 80), 20.0)
+    for p in range(4):
+        params = np.stack(
+            [
+                traces["x"][p] - traces["x"][p].round() + 7,
+                traces["y"][p] - traces["y"][p].round() + 7,
+                traces["amplitude"][p] * 5,
+                np.zeros(z.size),
+                traces["wx"][p],
+                traces["wy"][p],
+                traces["rho"][p],
+            ],
+            axis=1,
+        )
+        r, c = int(traces["y"][p, 0].round()) - 7, int(traces["x"][p, 0].round()) - 7
+        stack[:, r : r + 15, c : c + 15] += render_rois(params, shape=15)
+    stack = rng.poisson(stack).astype(np.uint16)
+    camera = Camera(offset=0.0, gain=1.0, readnoise=0.0, pixel_size_nm=100.0)
+    up = calibrate(stack, z, camera=camera, field_model="nearest", roi_size=15)
+    down = calibrate(stack[::-1], z[::-1], camera=camera, field_model="nearest", roi_size=15)
+    assert len(up.particles) == 4
+    np.testing.assert_allclose(up.particles["z_f"], down.particles["z_f"])

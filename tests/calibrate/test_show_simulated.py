@@ -193,3 +193,21 @@ def test_nearest_localization_of_test_particles(sim):
     sigma = np.mean(cal.particles["sigma_z"].to_numpy()[chosen])
     print(f"z RMSE {rmse:.1f} nm vs mean σ_z {sigma:.1f} nm of the nearest particles")
     assert rmse <= 1.5 * sigma
+
+
+def test_auto_shapes_on_the_pi_over_4_microscope(sim):
+    from latentz.calibrate.calibration import calibrate_traces
+
+    _, cal, _, _ = sim
+    kept = ~cal.culled
+    for shape, paper in (("auto", "rho_w"), ("auto_A", "rho_A")):
+        auto = calibrate_traces(cal.traces, camera=cal.camera, shape=shape, field_model="nearest")
+        # oblique astigmatism dominates the simulated map: θ ≈ π/4 (vertical Z6 tilts it a bit)
+        assert auto.local.theta == pytest.approx(np.pi / 4, abs=0.1)
+        mine = np.nanmean(auto.mean_sigma_z(shape, 4000.0)[kept])
+        theirs = np.nanmean(cal.mean_sigma_z(paper, 4000.0)[kept])
+        print(
+            f"θ = {auto.local.theta:.3f} rad; mean σ_z over 4 µm: {shape} {mine:.1f} nm, "
+            f"{paper} {theirs:.1f} nm"
+        )
+        assert mine == pytest.approx(theirs, rel=0.15)

@@ -28,7 +28,7 @@ from latentz._shared.validate import (
 )
 from latentz.calibrate.culling import cull as cull_particles
 from latentz.calibrate.culling import particle_features
-from latentz.calibrate.local import LocalModels, LocalOptions, fit_local
+from latentz.calibrate.local import LocalModels, LocalOptions, fit_local, row_mean
 from latentz.calibrate.shape import (
     SHAPES,
     astigmatism_angle,
@@ -362,8 +362,7 @@ class Calibration:
         near = np.abs(self.local.z_nm - self.local.z_f[:, None]) <= range_nm / 2
         have = near & np.isfinite(model.sigma_z)
         frac = have.sum(axis=1) / np.maximum(near.sum(axis=1), 1)
-        with np.errstate(invalid="ignore"):
-            mean = np.nanmean(np.where(have, model.sigma_z, np.nan), axis=1)
+        mean = row_mean(np.where(have, model.sigma_z, np.nan))
         return np.where(frac >= coverage, mean, np.nan)
 
     def local_z(self, value: Any, *, shape: str | None = None) -> np.ndarray:
@@ -527,16 +526,14 @@ def _particle_table(cal: Calibration) -> pd.DataFrame:
         }
     )
     for name, model in local.shapes.items():
-        with np.errstate(invalid="ignore"):
-            table[f"sigma_z_{name}"] = np.nanmean(model.sigma_z, axis=1)
+        table[f"sigma_z_{name}"] = row_mean(model.sigma_z)
         table[f"z_min_{name}"] = model.z_range[:, 0]
         table[f"z_max_{name}"] = model.z_range[:, 1]
     table["sigma_z"] = table[f"sigma_z_{cal.shape}"]
     table["z_min_nm"] = table[f"z_min_{cal.shape}"]
     table["z_max_nm"] = table[f"z_max_{cal.shape}"]
-    with np.errstate(invalid="ignore"):
-        table["sigma_dx_nm"] = np.nanmean(local.sigma_dx, axis=1) * px
-        table["sigma_dy_nm"] = np.nanmean(local.sigma_dy, axis=1) * px
+    table["sigma_dx_nm"] = row_mean(local.sigma_dx) * px
+    table["sigma_dy_nm"] = row_mean(local.sigma_dy) * px
     table["culled"] = cal.culled
     table["cull_reason"] = cal.reason
     table["reason"] = cal.reason

@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz.calibrate.local import LocalModels
+from latentz.calibrate.local import LocalModels, row_mean
 from latentz.calibrate.traces import Traces
 
 __all__ = ["particle_features", "robust_z", "neighbour_offsets", "cull", "FEATURE_TESTS"]
@@ -76,8 +76,7 @@ def neighbour_offsets(
 def _near_focus(z: np.ndarray, z_f: np.ndarray, values: np.ndarray, half_nm: float) -> np.ndarray:
     near = np.abs(z - z_f[:, None]) <= half_nm
     near |= np.abs(z - z_f[:, None]) <= np.nanmin(np.abs(z - z_f[:, None]), axis=1)[:, None]
-    with np.errstate(invalid="ignore"):
-        return np.nanmean(np.where(near, values, np.nan), axis=1)
+    return row_mean(np.where(near, values, np.nan))
 
 
 def particle_features(
@@ -107,7 +106,7 @@ def particle_features(
     curves = forward(z_f[:, None] + offsets[None, :])
     deviation = neighbour_offsets(curves, positions_nm, reference, k=k)
     spread = np.nanmedian(np.abs(deviation[reference]), axis=0) if reference.any() else 1.0
-    curve_rms = np.sqrt(np.nanmean((deviation / np.where(spread > 0, spread, 1.0)) ** 2, axis=1))
+    curve_rms = np.sqrt(row_mean((deviation / np.where(spread > 0, spread, 1.0)) ** 2))
     features = {
         "width_focus": neighbour_offsets(width, positions_nm, reference, k=k),
         "log_photons": np.log(np.clip(photons, 1e-12, None)),

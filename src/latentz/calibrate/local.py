@@ -24,7 +24,15 @@ from latentz.calibrate.polymodel import PolyModel
 from latentz.calibrate.shape import reference_amplitude, shape_value, uses_amplitude
 from latentz.calibrate.traces import Traces
 
-__all__ = ["LocalOptions", "ShapeModel", "LocalModels", "fit_local", "sliding_rms", "peak"]
+__all__ = [
+    "LocalOptions",
+    "ShapeModel",
+    "LocalModels",
+    "fit_local",
+    "sliding_rms",
+    "peak",
+    "row_mean",
+]
 
 
 @dataclass(frozen=True)
@@ -129,6 +137,14 @@ class LocalModels:
             dy=move(self.dy),
             shapes={k: v.shifted(dz) for k, v in self.shapes.items()},
         )
+
+
+def row_mean(values: np.ndarray) -> np.ndarray:
+    """Mean of the finite values of each row (NaN for a row without any), without warnings."""
+    finite = np.isfinite(values)
+    count = finite.sum(axis=1)
+    total = np.where(finite, values, 0.0).sum(axis=1)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
 def sliding_rms(z: np.ndarray, residuals: np.ndarray, *, window_nm: float, n_params: int):

@@ -26,7 +26,8 @@ def _scale(x: np.ndarray, domain: np.ndarray) -> np.ndarray:
     shape = (domain.shape[0],) + (1,) * (x.ndim - 1)
     lo = domain[:, 0].reshape(shape)
     hi = domain[:, 1].reshape(shape)
-    return (2.0 * x - lo - hi) / (hi - lo)
+    with np.errstate(divide="ignore", invalid="ignore"):  # invalid (NaN) models give NaN
+        return (2.0 * x - lo - hi) / (hi - lo)
 
 
 @dataclass(frozen=True, eq=False)
