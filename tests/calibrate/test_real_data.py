@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from latentz.calibrate.calibration import calibrate, calibrate_traces
+from latentz.calibrate.pipeline import calibrate, calibrate_traces
 from latentz.calibrate.traces import extract_traces, traces_table
 from latentz.camera import Camera
 

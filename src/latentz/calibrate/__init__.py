@@ -4,7 +4,8 @@ Local calibration of each calibration particle (traces, z_f, Δx'(z), Δy'(z), z
 culling, tilt removal, and 3D localization with the nearest particle's models.
 """
 
-from latentz.calibrate.calibration import FIELD_MODELS, Calibration, calibrate, calibrate_traces
+from latentz.calibrate.calibration import FIELD_MODELS, Calibration
+from latentz.calibrate.pipeline import calibrate, calibrate_traces
 from latentz.calibrate.polymodel import PolyModel
 from latentz.calibrate.shape import SHAPES, astigmatism_angle, shape_value
 from latentz.calibrate.tilt import TiltPlane

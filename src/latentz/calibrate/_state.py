@@ -1,0 +1,168 @@
+"""A Calibration as plain arrays, and its HDF5 file (local stage).
+
+Every part of a :class:`~latentz.calibrate.calibration.Calibration` is arrays plus a few
+scalars and options, so it flattens to ``{"group/name": ndarray}``. :func:`save` writes that
+mapping to HDF5 (one dataset per key, options, camera and provenance as JSON attributes) through
+an atomic temporary file; :func:`load` reads it back bit for bit. The widefield stage adds its
+models under its own group.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from latentz._shared.atomic import atomic_path
+from latentz._version import __version__
+
+__all__ = ["to_arrays", "from_arrays", "save", "load", "FORMAT"]
+
+FORMAT = "latentz-calibration/1"
+
+
+def _poly(prefix: str, model) -> dict[str, np.ndarray]:
+    return {f"{prefix}/coef": model.coef, f"{prefix}/domain": model.domain}
+
+
+def to_arrays(cal) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """``(arrays, attributes)``: every array of the calibration by key, and its JSON-able
+    scalars (options, camera, tilt plane, θ)."""
+    local, traces = cal.local, cal.traces
+    arrays: dict[str, np.ndarray] = {
+        "traces/z_nm": traces.z_nm,
+        "traces/stack": traces.stack,
+        "traces/crowded": traces.crowded,
+        "traces/offset_px": traces.offset_px,
+        **{f"traces/data/{k}": v for k, v in traces.data.items()},
+        "local/z_nm": local.z_nm,
+        "local/z_f": local.z_f,
+        "local/in_focus": local.in_focus,
+        "local/sigma_dx": local.sigma_dx,
+        "local/sigma_dy": local.sigma_dy,
+        **_poly("local/amplitude", local.amplitude),
+        **_poly("local/dx", local.dx),
+        **_poly("local/dy", local.dy),
+        "culling/culled": cal.culled,
+        "culling/reason": np.asarray(cal.reason, dtype=str).astype(bytes),
+        **{f"culling/scores/{k}": cal.scores[k].to_numpy() for k in cal.scores.columns},
+    }
+    for name, shape in local.shapes.items():
+        base = f"local/shapes/{name}"
+        arrays.update(
+            {
+                f"{base}/values": shape.values,
+                f"{base}/z_range": shape.z_range,
+                f"{base}/sigma_z": shape.sigma_z,
+                f"{base}/amplitude_ref": shape.amplitude_ref,
+                **_poly(f"{base}/forward", shape.forward),
+                **_poly(f"{base}/inverse", shape.inverse),
+            }
+        )
+    if cal.camera.flatfield is not None:
+        arrays["camera/flatfield"] = cal.camera.flatfield
+    attrs = {
+        "format": FORMAT,
+        "version": __version__,
+        "options": cal.options,
+        "camera": cal.camera.as_dict(),
+        "plane": [cal.plane.c0, cal.plane.cx, cal.plane.cy],
+        "theta": local.theta,
+        "n_scores": len(cal.scores),
+    }
+    return arrays, attrs
+
+
+def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
+    """Rebuild the Calibration that :func:`to_arrays` flattened."""
+    from latentz.calibrate.calibration import Calibration
+    from latentz.calibrate.local import LocalModels, ShapeModel
+    from latentz.calibrate.polymodel import PolyModel
+    from latentz.calibrate.tilt import TiltPlane
+    from latentz.calibrate.traces import Traces
+    from latentz.camera import Camera
+
+    if attrs.get("format") != FORMAT:
+        raise ValueError(f"Not a latentz calibration (format {attrs.get('format')!r}).")
+
+    def poly(prefix: str) -> PolyModel:
+        return PolyModel(arrays[f"{prefix}/coef"], arrays[f"{prefix}/domain"])
+
+    def group(prefix: str) -> dict[str, np.ndarray]:
+        return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+
+    names = sorted({k.split("/")[2] for k in arrays if k.startswith("local/shapes/")})
+    shapes = {
+        name: ShapeModel(
+            values=arrays[f"local/shapes/{name}/values"],
+            forward=poly(f"local/shapes/{name}/forward"),
+            inverse=poly(f"local/shapes/{name}/inverse"),
+            z_range=arrays[f"local/shapes/{name}/z_range"],
+            sigma_z=arrays[f"local/shapes/{name}/sigma_z"],
+            amplitude_ref=arrays[f"local/shapes/{name}/amplitude_ref"],
+        )
+        for name in names
+    }
+    local = LocalModels(
+        z_nm=arrays["local/z_nm"],
+        z_f=arrays["local/z_f"],
+        in_focus=arrays["local/in_focus"],
+        amplitude=poly("local/amplitude"),
+        dx=poly("local/dx"),
+        dy=poly("local/dy"),
+        sigma_dx=arrays["local/sigma_dx"],
+        sigma_dy=arrays["local/sigma_dy"],
+        shapes=shapes,
+        theta=attrs["theta"],
+    )
+    traces = Traces(
+        arrays["traces/z_nm"],
+        group("traces/data/"),
+        stack=arrays["traces/stack"],
+        crowded=arrays["traces/crowded"],
+        offset_px=arrays["traces/offset_px"],
+    )
+    camera = Camera(**attrs["camera"], flatfield=arrays.get("camera/flatfield"))
+    scores = pd.DataFrame(group("culling/scores/"), index=np.arange(attrs["n_scores"]))
+    return Calibration(
+        camera=camera,
+        traces=traces,
+        local=local,
+        plane=TiltPlane(*attrs["plane"]),
+        culled=arrays["culling/culled"],
+        reason=np.array([r.decode() for r in arrays["culling/reason"]], dtype=object),
+        scores=scores,
+        options=attrs["options"],
+    )
+
+
+def save(cal, path: str | os.PathLike, *, provenance: dict[str, Any] | None = None) -> None:
+    """Write ``cal`` to the HDF5 file ``path`` atomically (``provenance``: extra JSON-able
+    information such as input file names and hashes)."""
+    import h5py
+
+    arrays, attrs = to_arrays(cal)
+    attrs = {**attrs, "provenance": provenance or {}}
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+        for key, value in arrays.items():
+            h5.create_dataset(key, data=value)
+        for key, value in attrs.items():
+            h5.attrs[key] = json.dumps(value)
+
+
+def load(path: str | os.PathLike):
+    """Read a calibration written by :func:`save`."""
+    import h5py
+
+    arrays: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as h5:
+        h5.visititems(
+            lambda key, obj: (
+                arrays.__setitem__(key, obj[()]) if isinstance(obj, h5py.Dataset) else None
+            )
+        )
+        attrs = {key: json.loads(value) for key, value in h5.attrs.items()}
+    return from_arrays(arrays, attrs)
