@@ -103,10 +103,10 @@ def test_batched_equals_per_column_and_masks_are_respected(kind):
 
 
 def test_natural_matches_metpy_and_is_nan_outside_hull():
-    x, y = _particles(80, seed=10)
+    x, y = _particles(200, seed=10)
     values = _smooth(x, y)
     model = FieldModel.from_estimate(x, y, values, kind="natural", field_shape=SHAPE)
-    qx, qy = _particles(150, seed=11)
+    qx, qy = _particles(1000, seed=11)
     ref = natural_neighbor_to_points(np.column_stack([x, y]), values, np.column_stack([qx, qy]))
     got = model(qx, qy)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
@@ -127,7 +127,7 @@ def test_nearest_matches_brute_force():
 
 @pytest.mark.parametrize("kind", ["natural", "nearest"])
 def test_leave_one_out_equals_naive_refit(kind):
-    n = 45
+    n = 150
     x, y = _particles(n, seed=14)
     values = _smooth(x, y)
     model = FieldModel.from_estimate(x, y, values, kind=kind, field_shape=SHAPE)

@@ -9,8 +9,10 @@ lateral position. The paper compares three models, all behind one interface here
     circumscribes the field (:mod:`latentz.zernike`). Its error estimate is the fit residual at
     each particle.
 ``"natural"``
-    Natural-neighbour (Sibson) interpolation (MetPy's ``natural_neighbor_to_points``); NaN outside
-    the convex hull of the valid particles, never extrapolated. Error estimate: leave-one-out.
+    Natural-neighbour (Sibson) interpolation; NaN outside the convex hull of the valid particles,
+    never extrapolated. Error estimate: leave-one-out. The weights are computed here, vectorised
+    over points, and tested against MetPy's ``natural_neighbor_to_points``, which loops in Python
+    and took about 0.5 ms per point (50 s for 10^5 points, per validity pattern).
 ``"nearest"``
     The value of the nearest valid particle (``scipy.spatial.cKDTree``). Leave-one-out errors.
 
@@ -30,9 +32,8 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from metpy.interpolate import natural_neighbor_to_points
 from scipy.sparse import csr_matrix
-from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 from scipy.stats import kurtosis
 
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
@@ -43,7 +44,6 @@ __all__ = ["FieldModel", "FIELD_MODEL_KINDS", "field_errors"]
 FIELD_MODEL_KINDS = ("zernike", "natural", "nearest")
 _FORMAT = 1  # version of the representation returned by FieldModel.as_arrays
 _CHUNK = 8192  # query points per block
-_NN_CHUNK = 512  # query points per MetPy call
 
 
 def _as_points(x: Any, y: Any, names: tuple[str, str]) -> tuple[np.ndarray, np.ndarray]:
@@ -65,78 +65,148 @@ def _nearest_weights(points: np.ndarray, queries: np.ndarray):
     return k, idx, np.ones(len(queries)), np.ones(len(queries), dtype=bool)
 
 
-def _metpy_rows(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """Sibson coordinates (n_queries, n_points) of queries strictly inside the hull, via MetPy.
+def _circumcenter(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Circumcentres (k, 2) of triangles with vertices ``a``, ``b``, ``c`` (k, 2)."""
+    bx, by = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    cx, cy = c[:, 0] - a[:, 0], c[:, 1] - a[:, 1]
+    d = 2.0 * (bx * cy - by * cx)
+    b2, c2 = bx * bx + by * by, cx * cx + cy * cy
+    return np.column_stack([a[:, 0] + (cy * b2 - by * c2) / d, a[:, 1] + (bx * c2 - cx * b2) / d])
 
-    MetPy's interpolation is linear in ``values``, so interpolating the identity matrix returns
-    each query's natural-neighbour weights. A query MetPy cannot process (a degenerate Voronoi
-    polygon) gets a row of NaN.
+
+def _signed_area(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return 0.5 * (
+        (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    )
+
+
+def _sorted_unique(a: np.ndarray) -> np.ndarray:
+    a = np.sort(a)
+    return a[np.r_[True, a[1:] != a[:-1]]] if a.size else a
+
+
+def _conflicts(tri, centres, radii2, queries, start):
+    """All (query, triangle) pairs whose circumcircle strictly contains the query.
+
+    A breadth-first search over triangle neighbours from the triangle containing each query
+    (Bowyer-Watson's cavity, which is connected), for all queries at once.
     """
-    eye = np.eye(len(points))
-    try:
-        return np.asarray(natural_neighbor_to_points(points, eye, queries), dtype=np.float64)
-    except ValueError:  # a failed point came back as a scalar NaN: redo one at a time
-        rows = np.full((len(queries), len(points)), np.nan)
-        for i in range(len(queries)):
-            row = np.asarray(natural_neighbor_to_points(points, eye, queries[i : i + 1]))
-            if row.shape == (1, len(points)):
-                rows[i] = row[0]
-        return rows
+    n_tri = len(tri.simplices)
+    fq, ft = np.flatnonzero(start >= 0), start[start >= 0]
+    seen = np.sort(fq * n_tri + ft)
+    found_q, found_t = [fq], [ft]
+    while fq.size:
+        cq, ct = np.repeat(fq, 3), tri.neighbors[ft].ravel()
+        cq, ct = cq[ct >= 0], ct[ct >= 0]
+        inside = np.sum((queries[cq] - centres[ct]) ** 2, axis=1) < radii2[ct]
+        code = _sorted_unique(cq[inside] * n_tri + ct[inside])
+        pos = np.minimum(np.searchsorted(seen, code), max(seen.size - 1, 0))
+        code = code[seen[pos] != code] if seen.size else code
+        seen = np.sort(np.concatenate([seen, code]))
+        fq, ft = code // n_tri, code % n_tri
+        found_q.append(fq)
+        found_t.append(ft)
+    return np.concatenate(found_q), np.concatenate(found_t)
 
 
 def _natural_weights(points: np.ndarray, queries: np.ndarray):
+    """Sibson (natural-neighbour) coordinates of queries, by Watson's signed decomposition.
+
+    Inserting a query ``q`` into the Delaunay triangulation removes the triangles whose
+    circumcircle contains ``q``; the area its new Voronoi cell takes from particle ``a`` is the
+    sum, over those triangles ``(a, b, c)`` (counter-clockwise) with circumcentre ``C``, of the
+    signed areas of ``(C, cc(q, a, b), cc(q, c, a))`` (``cc``: circumcentre), because consecutive
+    terms meet on Voronoi edges of ``a``. Normalised, these areas are Sibson's coordinates
+    (Watson, Comput. Geosci. 18, 1992; Sibson, 1981). Outside the convex hull the interpolant is
+    undefined; at a particle it is that particle's value. Checked against MetPy's
+    ``natural_neighbor_to_points`` in the tests.
+    """
     n_q = len(queries)
-    empty = (np.zeros(0, int), np.zeros(0, int), np.zeros(0))
+    none = (np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(n_q, dtype=bool))
     if len(points) < 3:
-        return *empty, np.zeros(n_q, dtype=bool)
+        return none
     try:
-        hull = ConvexHull(points)
+        tri = Delaunay(points)
     except QhullError:  # all particles on a line: no triangle, no interpolant
-        return *empty, np.zeros(n_q, dtype=bool)
-    # Inside the hull (edges included). Unlike Delaunay.find_simplex this needs no LAPACK call,
-    # whose thread start-up dominates for the many small point sets of leave-one-out.
-    scale = max(float(np.ptp(points)), 1.0)
-    ok = np.all(queries @ hull.equations[:, :2].T + hull.equations[:, 2] <= 1e-12 * scale, axis=1)
+        return none
+    start = tri.find_simplex(queries) if n_q else np.zeros(0, int)
+    ok = start >= 0
     dist, near = cKDTree(points).query(queries)
-    at_site = ok & (dist <= 1e-9 * scale)
-    ki, kj, kw = [np.flatnonzero(at_site)], [near[at_site]], [np.ones(int(at_site.sum()))]
-    todo = np.flatnonzero(ok & ~at_site)
-    for start in range(0, todo.size, _NN_CHUNK):
-        sel = todo[start : start + _NN_CHUNK]
-        rows = _metpy_rows(points, queries[sel])
-        failed = ~np.all(np.isfinite(rows), axis=1)
-        ok[sel[failed]] = False
-        r, c = np.nonzero(np.where(np.isfinite(rows), rows, 0.0))
-        ki.append(sel[r])
-        kj.append(c)
-        kw.append(rows[r, c])
-    return np.concatenate(ki), np.concatenate(kj), np.concatenate(kw), ok
+    at_site = ok & (dist <= 1e-9 * max(float(np.ptp(points)), 1.0))
+    verts = tri.simplices.copy()
+    corner = points[verts]
+    clockwise = _signed_area(corner[:, 0], corner[:, 1], corner[:, 2]) < 0
+    verts[clockwise] = verts[clockwise][:, [0, 2, 1]]
+    corner = points[verts]
+    centres = _circumcenter(corner[:, 0], corner[:, 1], corner[:, 2])
+    radii2 = np.sum((corner[:, 0] - centres) ** 2, axis=1)
+    cq, ct = _conflicts(tri, centres, radii2, queries, np.where(at_site, -1, start))
+    q, v = queries[cq], verts[ct]
+    p0, p1, p2 = points[v[:, 0]], points[v[:, 1]], points[v[:, 2]]
+    g01, g12, g20 = _circumcenter(q, p0, p1), _circumcenter(q, p1, p2), _circumcenter(q, p2, p0)
+    centre = centres[ct]
+    area = np.column_stack(
+        [
+            _signed_area(centre, g01, g20),
+            _signed_area(centre, g12, g01),
+            _signed_area(centre, g20, g12),
+        ]
+    )
+    # Sum the areas per (query, particle) pair, then normalise per query.
+    key = np.repeat(cq, 3).astype(np.int64) * len(points) + v.ravel()
+    order = np.argsort(key, kind="stable")
+    first = np.r_[True, key[order][1:] != key[order][:-1]] if key.size else np.zeros(0, bool)
+    group = np.empty(key.size, dtype=np.int64)
+    group[order] = np.cumsum(first) - 1
+    unique_key = key[order][first]
+    weight = np.bincount(group, area.ravel(), minlength=unique_key.size)
+    kq, kp = unique_key // len(points), unique_key % len(points)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        weight = weight / np.bincount(kq, weight, minlength=n_q)[kq]
+    bad = np.unique(kq[~np.isfinite(weight)])  # a query exactly on a Delaunay edge
+    ok[bad] = False
+    keep = ~np.isin(kq, bad)
+    site = np.flatnonzero(at_site)
+    return (
+        np.concatenate([kq[keep], site]),
+        np.concatenate([kp[keep], near[site]]),
+        np.concatenate([weight[keep], np.ones(site.size)]),
+        ok,
+    )
 
 
 def _natural_loo(points: np.ndarray):
     """Leave-one-out Sibson weights: particle ``i`` predicted from all the others.
 
-    Removing particle ``i`` only changes the triangulation inside its star, so the weights are
-    computed from its neighbours and their neighbours in the Delaunay triangulation, which
-    reproduces the interpolant of all other particles at ``i`` exactly.
+    Removing ``i`` changes the triangulation only in its star, and its interpolant at ``x_i``
+    depends only on triangles with vertices among its neighbours and their neighbours. So
+    particles more than two Delaunay edges apart can be left out together: the particles are
+    coloured greedily so that no two within two edges share a colour, and each colour needs one
+    triangulation.
     """
     n = len(points)
-    ki, kj, kw = [], [], []
-    ok = np.zeros(n, dtype=bool)
+    none = (np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(n, dtype=bool))
     if n < 4:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0), ok
+        return none
     try:
         indptr, nbr = Delaunay(points).vertex_neighbor_vertices
     except QhullError:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0), ok
+        return none
+    colour = np.full(n, -1)
     for i in range(n):
         ring = nbr[indptr[i] : indptr[i + 1]]
-        local = np.unique(np.concatenate([ring] + [nbr[indptr[j] : indptr[j + 1]] for j in ring]))
-        local = local[local != i]
-        _, pj, w, inside = _natural_weights(points[local], points[i : i + 1])
-        ok[i] = inside[0]
-        ki.append(np.full(pj.size, i))
-        kj.append(local[pj])
+        near = np.concatenate([ring] + [nbr[indptr[j] : indptr[j + 1]] for j in ring])
+        taken = set(colour[near].tolist())
+        colour[i] = next(c for c in range(n) if c not in taken)
+    ki, kj, kw = [], [], []
+    ok = np.zeros(n, dtype=bool)
+    for c in range(colour.max() + 1):
+        out = np.flatnonzero(colour == c)
+        rest = np.flatnonzero(colour != c)
+        pi, pj, w, inside = _natural_weights(points[rest], points[out])
+        ok[out] = inside
+        ki.append(out[pi])
+        kj.append(rest[pj])
         kw.append(w)
     return np.concatenate(ki), np.concatenate(kj), np.concatenate(kw), ok
 
