@@ -212,3 +212,39 @@ def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
         from latentz.calibrate._state import from_arrays
 
         from_arrays(arrays, {**attrs, "format": "other"})
+
+
+def test_a_tiff_path_with_a_single_bead_and_explicit_position(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    from latentz.fit import render_rois
+
+    z = np.linspace(-1500.0, 1500.0, 31)
+    traces, _ = make_traces(1, z_nm=z, noise=0.0, positions=[[10.3, 9.8]])
+    params = np.stack(
+        [
+            traces["x"][0],
+            traces["y"][0],
+            traces["amplitude"][0] * 5,
+            np.full(z.size, 20.0),
+            traces["wx"][0],
+            traces["wy"][0],
+            traces["rho"][0],
+        ],
+        axis=1,
+    )
+    stack = np.random.default_rng(60).poisson(render_rois(params, shape=21)).astype(np.uint16)
+    path = tmp_path / "bead.tif"
+    tifffile.imwrite(path, stack)
+    camera = Camera(offset=0.0, gain=1.0, readnoise=0.0, pixel_size_nm=100.0)
+    cal = calibrate(
+        path,
+        z,
+        camera=camera,
+        field_model="nearest",
+        roi_size=17,
+        positions=[(10, 10)],
+        progress=True,
+    )
+    assert len(cal.particles) == 1 and not cal.culled[0]
+    # one particle: no population to cull against, and a flat "tilt" plane at its focus
+    assert cal.tilt_mrad == 0.0 and cal.particles["z_f_nm"].iloc[0] == 0.0

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from calib_synthetic import make_traces
 
-from latentz.calibrate.figures import figure2, figure3, interpercentile
+from latentz.calibrate.figures import figure2, figure3, figure_focus, interpercentile
 from latentz.calibrate.pipeline import calibrate_traces
 from latentz.camera import Camera
 
@@ -18,7 +18,8 @@ def cal():
 def test_figures_are_written(cal, tmp_path):
     fig2 = figure2(cal, 3, path=tmp_path / "fig2.png")
     fig3 = figure3(cal, path=tmp_path / "fig3.png", ranges_nm=[1000.0, 2000.0, 4000.0])
-    for name in ("fig2.png", "fig3.png"):
+    figure_focus(cal, path=tmp_path / "focus.png")
+    for name in ("fig2.png", "fig3.png", "focus.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list(tmp_path.glob(".*.part"))  # no temporary left behind
     assert fig2.axes[0].get_title() == "(a) particle 3"

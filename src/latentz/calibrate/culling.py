@@ -34,12 +34,12 @@ from latentz.calibrate.traces import Traces
 
 __all__ = ["particle_features", "robust_z", "neighbour_offsets", "cull", "FEATURE_TESTS"]
 
-#: feature -> (compared to "population" or "neighbours", one-sided "high" or "both")
+#: feature -> which deviations are defects: "high" (one-sided) or "both"
 FEATURE_TESTS = {
-    "width_focus": ("neighbours", "high"),
-    "log_photons": ("population", "both"),
-    "curve_rms": ("population", "high"),
-    "z_f_offset": ("population", "both"),
+    "width_focus": "high",
+    "log_photons": "both",
+    "curve_rms": "high",
+    "z_f_offset": "both",
 }
 
 
@@ -150,7 +150,7 @@ def cull(
         {name: robust_z(features[name].to_numpy(), ~failed) for name in features.columns}
     )
     flags: dict[str, Any] = dict(hard)
-    for name, (_, side) in FEATURE_TESTS.items():
+    for name, side in FEATURE_TESTS.items():
         if name not in scores:
             continue
         score = scores[name].to_numpy()

@@ -14,7 +14,7 @@ from latentz._shared.atomic import atomic_path
 from latentz._shared.validate import check_int
 from latentz.calibrate.calibration import PAPER_SHAPES, Calibration
 
-__all__ = ["figure2", "figure3"]
+__all__ = ["figure2", "figure3", "figure_focus"]
 
 _LABELS = {
     "rho": "ρ",
@@ -207,6 +207,40 @@ def figure3(
         xlabel="axial range (µm)", ylabel="68 % range of σ_z (nm)", title="(e)", yscale="log"
     )
     axes[3].legend()
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def figure_focus(cal: Calibration, *, path: str | os.PathLike | None = None) -> Any:
+    """The surface of best focus before and after tilt removal (paper Methods, Supp. Fig. 3):
+    (a) z_f (piezo) over the field with the tilt plane's nutation and azimuth, (b) the field
+    curvature z_f − plane. Culled particles are drawn as crosses."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    table = cal.particles
+    kept = ~table["culled"].to_numpy()
+    pos = cal.positions * cal.camera.pixel_size_nm / 1000
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, column, title in (
+        (
+            axes[0],
+            "z_f",
+            f"(a) z_f, tilt {cal.tilt_mrad:.2f} mrad toward "
+            f"{np.degrees(cal.plane.azimuth_rad):.0f}°",
+        ),
+        (axes[1], "z_f_nm", "(b) field curvature z_f − plane"),
+    ):
+        values = table[column].to_numpy()
+        sc = ax.scatter(pos[kept, 0], pos[kept, 1], c=values[kept], s=14, cmap="coolwarm")
+        ax.scatter(pos[~kept, 0], pos[~kept, 1], marker="x", c="k", s=14)
+        ax.set(xlabel="x (µm)", ylabel="y (µm)", title=title)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.invert_yaxis()
+        fig.colorbar(sc, ax=ax, label="nm")
     fig.tight_layout()
     _save(fig, path)
     return fig

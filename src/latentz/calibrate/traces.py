@@ -284,7 +284,7 @@ def extract_traces(
             projection = camera.to_photons(np.max(stack, axis=0))
             found = find_particles(projection, roi_size=roi_size, threshold=threshold)
         else:
-            found = check_array(f"positions[{s}]", positions[s], ndim=2, allow_empty=True)
+            found = check_array(f"positions[{s}]", positions[s], ndim=(1, 2), allow_empty=True)
             found = found.reshape(-1, 2).astype(np.float64)
         if found.shape[0] == 0:
             continue
