@@ -4,8 +4,10 @@ Zernike: fit 400 terms to 500 particles x 2000 columns (one column per tabulated
 with one validity pattern for all columns and with the realistic case of each particle covering a
 contiguous run of columns (many distinct patterns); evaluate at 10^5 points, both every point in
 its own column (what ``apply`` needs) and all points in a few columns. Natural and nearest
-neighbour: evaluation at 10^5 points and leave-one-out residuals, timed on smaller problems
-where MetPy's pure-Python natural-neighbour routine would take minutes.
+neighbour: evaluation at 10^5 points and leave-one-out residuals for all columns; MetPy's
+natural-neighbour routine (the tests' reference) is timed on fewer points for comparison.
+Multithreaded OpenBLAS slows the many small factorisations badly when the cores are busy;
+``OPENBLAS_NUM_THREADS=1`` avoids that.
 Run: ``python benchmarks/bench_fieldmodels.py [--columns N] [--particles N] [--points N]``.
 """
 
@@ -16,6 +18,7 @@ import time
 import warnings
 
 import numpy as np
+from metpy.interpolate import natural_neighbor_to_points
 
 from latentz.calibrate.fieldmodels import FieldModel, field_errors
 from latentz.zernike import zernike_design
@@ -36,7 +39,7 @@ def main() -> None:
     parser.add_argument("--columns", type=int, default=2000)
     parser.add_argument("--points", type=int, default=100_000)
     parser.add_argument("--terms", type=int, default=400)
-    parser.add_argument("--natural-points", type=int, default=2000)
+    parser.add_argument("--metpy-points", type=int, default=2000)
     args = parser.parse_args()
     n, m = args.particles, args.columns
     rng = np.random.default_rng(0)
@@ -87,10 +90,18 @@ def main() -> None:
     _timed(f"nearest eval, {args.points} points, own column each", nearest, qx, qy, columns=qcols)
     _timed(f"nearest leave-one-out, {n} particles x {m} columns", field_errors, nearest)
 
-    k = args.natural_points
-    natural = FieldModel.from_estimate(x, y, values[:, :4], kind="natural", field_shape=SHAPE)
-    _timed(f"natural eval, {k} points x 4 columns (1 pattern)", natural, qx[:k], qy[:k])
-    _timed(f"natural leave-one-out, {n} particles (1 pattern)", natural.residuals)
+    natural = FieldModel.from_estimate(
+        x, y, values, kind="natural", field_shape=SHAPE, valid=ranged
+    )
+    _timed(f"natural eval, {args.points} points, own column each", natural, qx, qy, columns=qcols)
+    _timed(f"natural leave-one-out, {n} particles x {m} columns", field_errors, natural)
+    k = args.metpy_points
+    metpy_points = np.column_stack([x, y])
+    _timed(
+        f"MetPy natural_neighbor_to_points, {k} points, 1 column (reference)",
+        natural_neighbor_to_points,
+        *(metpy_points, values[:, 0], np.column_stack([qx[:k], qy[:k]])),
+    )
 
 
 def _middle_columns(model: FieldModel, count: int) -> FieldModel:
