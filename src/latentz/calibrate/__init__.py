@@ -1,10 +1,15 @@
 """Through-focus calibration of the microscope's intrinsic aberrations (paper Figs. 2–3).
 
 Local calibration of each calibration particle (traces, z_f, Δx'(z), Δy'(z), z(shape), σ's),
-culling, tilt removal, and 3D localization with the nearest particle's models.
+culling, tilt removal, 3D localization with the nearest particle's models, and the figures; the
+field models and the aperture-array magnification live beside them.
 """
 
+from latentz.calibrate.apertures import ApertureLattice
 from latentz.calibrate.calibration import FIELD_MODELS, Calibration
+from latentz.calibrate.fieldmodels import FieldModel, field_errors
+from latentz.calibrate.figures import figure2, figure3, figure_focus
+from latentz.calibrate.local import LocalOptions
 from latentz.calibrate.pipeline import calibrate, calibrate_traces
 from latentz.calibrate.polymodel import PolyModel
 from latentz.calibrate.shape import SHAPES, astigmatism_angle, shape_value
@@ -14,7 +19,10 @@ from latentz.calibrate.traces import Traces, extract_traces, find_particles
 __all__ = [
     "FIELD_MODELS",
     "SHAPES",
+    "ApertureLattice",
     "Calibration",
+    "FieldModel",
+    "LocalOptions",
     "PolyModel",
     "TiltPlane",
     "Traces",
@@ -22,6 +30,10 @@ __all__ = [
     "calibrate",
     "calibrate_traces",
     "extract_traces",
+    "field_errors",
+    "figure2",
+    "figure3",
+    "figure_focus",
     "find_particles",
     "shape_value",
 ]

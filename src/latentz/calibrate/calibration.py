@@ -112,7 +112,18 @@ class Calibration:
 
     @property
     def particles(self) -> pd.DataFrame:
-        """One row per calibration particle (see the module docs for the columns)."""
+        """One row per calibration particle.
+
+        Columns: ``particle``, ``stack``; ``x``, ``y`` (field pixels) and ``x_nm``, ``y_nm``;
+        ``z_f`` (piezo z of best focus, nm) and ``z_f_nm`` (after tilt removal: the field
+        curvature); ``in_focus``; for each modelled shape s, ``sigma_z_<s>`` (mean σ_z over its
+        monotonic range, nm) and ``z_min_<s>``, ``z_max_<s>`` (that range, tilt-corrected nm);
+        ``sigma_z``, ``z_min_nm``, ``z_max_nm`` for the calibration's shape; ``sigma_dx_nm``,
+        ``sigma_dy_nm``; ``culled``, ``cull_reason`` (= ``reason``) and the culling scores
+        ``score_<feature>``; and the polynomial coefficients (Chebyshev, scaled domain):
+        ``z_coef``/``z_domain`` of z(shape), ``dx_coef``, ``dy_coef``/``lateral_domain_nm``,
+        ``amplitude_coef``.
+        """
         if "particles" not in self._cache:
             self._cache["particles"] = _particle_table(self)
         return self._cache["particles"].copy()
