@@ -39,6 +39,16 @@ def test_recovers_pixel_size_rotation_and_rejects_spurious_points():
     assert np.sqrt(np.mean(res**2)) == pytest.approx(fit.sigma_px, rel=0.01)
 
 
+@pytest.mark.parametrize("rotation", [0.0, 0.004, -0.3, np.pi / 4, 1.2, np.pi / 2 + 0.1])
+def test_indexing_is_robust_to_rotation(rotation):
+    x, y, n_real = _array(np.random.default_rng(4), rotation=rotation, drop=0.2, spurious=10)
+    fit = ApertureLattice.from_estimate(x, y, pitch_nm=PITCH_NM)
+    assert abs(fit.pixel_size_nm - PIXEL_NM) < 4 * fit.pixel_size_err_nm
+    assert fit.used.sum() == n_real
+    folded = np.mod(fit.rotation_rad - rotation + np.pi / 4, np.pi / 2) - np.pi / 4
+    assert abs(folded) < 1e-3  # the same lattice, up to the square's 4-fold symmetry
+
+
 def test_uncertainty_is_honest_over_noise_draws():
     """(estimate - truth) / sigma has mean 0 and standard deviation 1 over repeated draws."""
     rng = np.random.default_rng(1)
