@@ -508,13 +508,9 @@ class FieldModel:
             convex hull for ``"natural"``).
         """
         if self.kind == "zernike":
-            design = zernike_design(
-                self.x_px,
-                self.y_px,
-                field_shape=self.field_shape,
-                n_terms=self.coefficients.shape[0],
-            )
-            pred = design @ self.coefficients
+            p = max(int(self.n_terms_effective.max(initial=0)), 1)
+            design = zernike_design(self.x_px, self.y_px, field_shape=self.field_shape, n_terms=p)
+            pred = design @ self.coefficients[:p]
         else:
             pred = np.full(self.values.shape, np.nan)
             for k, pattern in enumerate(self._patterns):
