@@ -26,7 +26,8 @@ class TiltPlane:
     Examples
     --------
     >>> x, y = np.meshgrid(np.arange(0.0, 1e5, 1e4), np.arange(0.0, 1e5, 1e4))
-    >>> plane = TiltPlane.from_estimate(x.ravel(), y.ravel(), 2e-3 * x.ravel() + 40.0)
+    >>> z = np.tan(2e-3) * x.ravel() + 40.0  # 2 mrad along x
+    >>> plane = TiltPlane.from_estimate(x.ravel(), y.ravel(), z)
     >>> round(plane.nutation_mrad, 6)
     2.0
     """
