@@ -112,14 +112,36 @@ def _start(roi, out):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
+def log_factorial(d):
+    """``log Gamma(d + 1)`` for real ``d > -1``: Stirling's series at ``z = d + 1 >= 8``
+    (truncation error below ``1 / (1188 z^9) < 1e-11``), shifted up by the recurrence below.
+
+    About twice as fast as ``math.lgamma``, which dominated the final pass of a fit.
+    """
+    z = d + 1.0
+    shift = 0.0
+    if z < 8.0:
+        prod = 1.0
+        while z < 8.0:
+            prod *= z
+            z += 1.0
+        shift = math.log(prod)
+    iz = 1.0 / z
+    iz2 = iz * iz
+    series = iz * (1.0 / 12.0 - iz2 * (1.0 / 360.0 - iz2 * (1.0 / 1260.0 - iz2 / 1680.0)))
+    return (z - 0.5) * math.log(z) - z + 0.9189385332046727 + series - shift
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _evaluate(roi, p, method, s2, scale, inv_data, w_ref, mu_out, w_out, hess, grad):
     """Objective at internal parameters ``p``, with ``hess`` and ``grad`` for the next step.
 
     Returns ``(objective with the reference weights, objective with the weights at p)``; they
-    differ only for WLSQ, whose reference weights come from ``mu_ref``. ``mu_out`` receives the
-    model at ``p`` (row-major). For MLE the objective is the Poisson deviance itself (about one
-    per pixel at the optimum), not the log-likelihood with its large data-only constant, so that
-    its changes stay well above float64 rounding.
+    differ only for WLSQ, whose reference weights are ``w_ref``. ``mu_out`` and ``w_out`` receive
+    the model and the weights ``1 / (mu + s2)`` at ``p`` (row-major); ``inv_data`` holds
+    ``1 / (d + s2)`` (0 where ``d + s2 <= 0``) for MLE. For MLE the objective is the Poisson
+    deviance itself (about one per pixel at the optimum), not the log-likelihood with its large
+    data-only constant, so that its changes stay well above float64 rounding.
     """
     h, w = roi.shape
     x = p[0]
@@ -153,24 +175,26 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, mu_out, hess, grad):
             ag = amp * g
             mu = ag + bg
             d = roi[i, j]
-            mu_out[i * w + j] = mu
+            k = i * w + j
+            mu_out[k] = mu
             if method == MLE:
                 mus = mu + s2
                 if mus <= 0.0:
                     return np.inf, np.inf
                 ds = d + s2
                 wt = 1.0 / mus
-                if ds > 0.0:
-                    term = 2.0 * (mus - ds - ds * math.log(mus / ds))
+                w_out[k] = wt
+                if inv_data[k] > 0.0:
+                    obj_ref += 2.0 * (mus - ds - ds * math.log(mus * inv_data[k]))
                     res = ds * wt - 1.0
                 else:
-                    term = 2.0 * mus
+                    obj_ref += 2.0 * mus
                     res = -1.0
-                obj_ref += term
             elif method == WLSQ:
                 r = d - mu
                 wt = 1.0 / (mu + s2)
-                obj_ref += r * r / (mu_ref[i * w + j] + s2)
+                w_out[k] = wt
+                obj_ref += r * r * w_ref[k]
                 obj_new += r * r * wt
                 res = r * wt
             else:
@@ -308,13 +332,17 @@ def _fit_one(
 ):
     """Fit one ROI from the natural-parameter ``start``; return (loglik, chi2, iters, converged).
 
-    Work arrays, allocated once per chunk of ROIs: ``scratch`` (2, h*w) holds the model at the
-    current and at the trial parameters, ``vecs`` (7, 7) and ``mats`` (3, 7, 7) the rest.
+    Work arrays, allocated once per chunk of ROIs: ``scratch`` (5, h*w) holds the model and the
+    weights at the current and at the trial parameters, and ``1 / (d + s2)``; ``vecs`` (7, 7) and
+    ``mats`` (3, 7, 7) the rest.
     """
     h, w = roi.shape
     npix = h * w
     mu_ref = scratch[0]
     mu_try = scratch[1]
+    w_ref = scratch[2]
+    w_try = scratch[3]
+    inv_data = scratch[4]
     hess = mats[0]
     hess_try = mats[1]
     lower = mats[2]
@@ -338,8 +366,12 @@ def _fit_one(
             for j in range(w):
                 scale += roi[i, j] + s2
         scale = 1.0 / max(scale / npix, 1.0)
-    # With mu_out = mu_ref, WLSQ's first weights are those of the start itself.
-    obj = _evaluate(roi, p, method, s2, scale, mu_ref, mu_ref, hess, grad)[1]
+    for i in range(h):
+        for j in range(w):
+            ds = roi[i, j] + s2
+            inv_data[i * w + j] = 1.0 / ds if ds > 0.0 else 0.0
+    # With w_out = w_ref, WLSQ's first weights are those of the start itself.
+    obj = _evaluate(roi, p, method, s2, scale, inv_data, w_ref, mu_ref, w_ref, hess, grad)[1]
     converged = False
     lam = _LAM0
     iters = 0
@@ -366,7 +398,7 @@ def _fit_one(
             for k in range(_NP):
                 p_try[k] = min(max(p[k] + delta[k], lower_b[k]), upper_b[k])
             obj_try, obj_try_w = _evaluate(
-                roi, p_try, method, s2, scale, mu_ref, mu_try, hess_try, grad_try
+                roi, p_try, method, s2, scale, inv_data, w_ref, mu_try, w_try, hess_try, grad_try
             )
             if obj_try < obj:
                 decrease = obj - obj_try
@@ -377,6 +409,7 @@ def _fit_one(
                         hess[k, m] = hess_try[k, m]
                 for k in range(npix):
                     mu_ref[k] = mu_try[k]
+                    w_ref[k] = w_try[k]
                 obj = obj_try_w
                 lam = max(lam * 0.1, 1e-7)
                 if decrease <= limit:
@@ -394,7 +427,7 @@ def _fit_one(
         method,
         s2,
         scale,
-        mu_ref,
+        scratch,
         hess,
         grad,
         lower,
@@ -415,7 +448,7 @@ def _finish(
     method,
     s2,
     scale,
-    mu,
+    scratch,
     hess,
     grad,
     lower,
@@ -427,10 +460,11 @@ def _finish(
 ):
     """Natural parameters, Cramér–Rao bounds, log-likelihood and chi-square at ``p``."""
     h, w = roi.shape
+    mu = scratch[0]
     if method == LSQ:
         # The Fisher information needs the Poisson weights; WLSQ's and MLE's ``hess`` at ``p``
         # already is the Fisher information.
-        _evaluate(roi, p, MLE, s2, scale, mu, mu, hess, grad)
+        _evaluate(roi, p, MLE, s2, scale, scratch[4], scratch[2], mu, scratch[2], hess, grad)
     wx = math.exp(p[4])
     wy = math.exp(p[5])
     rho = math.tanh(p[6])
@@ -472,7 +506,7 @@ def _finish(
             r = roi[i, j] - mu[i * w + j]
             chi2 += r * r / m
             if d > 0:
-                loglik += d * math.log(m) - m - math.lgamma(d + 1.0)
+                loglik += d * math.log(m) - m - log_factorial(d)
             else:
                 loglik -= m
     return loglik, chi2, iters, converged
@@ -506,7 +540,7 @@ def fit_batch(
     """
     n, h, w = rois.shape
     for c in numba.prange(n_chunks):
-        scratch = np.empty((2, h * w))
+        scratch = np.empty((5, h * w))
         vecs = np.empty((7, _NP))
         mats = np.empty((3, _NP, _NP))
         first = vecs[6]
