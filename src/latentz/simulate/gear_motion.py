@@ -113,8 +113,11 @@ class GearTruth:
 
 def _place_particles(rng: np.random.Generator, n: int, radius_nm: float) -> np.ndarray:
     """Uniform in area in the annulus 0.3 R – 0.95 R, at least 5 µm apart (rejection sampling)."""
+    # Disc packing bound: at most area / (√3/2 s²) points s apart fit in the annulus (+ its rim).
+    area = np.pi * ((0.95 * radius_nm + _MIN_SEPARATION_NM / 2) ** 2 - (0.3 * radius_nm) ** 2)
+    fits = n <= area / (np.sqrt(3) / 2 * _MIN_SEPARATION_NM**2)
     points: list[np.ndarray] = []
-    for _ in range(200 * n):
+    for _ in range(200 * n if fits else 0):
         if len(points) == n:
             break
         r = radius_nm * np.sqrt(rng.uniform(0.3**2, 0.95**2))

@@ -1,0 +1,221 @@
+"""Figures of the motion analyses (paper Figs. 6–8, Supp. Figs. 15, 18, 20).
+
+Every function takes tables from :mod:`latentz.motion` and returns a matplotlib ``Figure`` built
+without pyplot (no global state, safe off the main thread); :func:`save_figure` writes a PNG
+atomically. Angles are plotted in mrad.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from latentz._shared.atomic import atomic_path
+from latentz._shared.validate import check_int
+from latentz.motion.analyses import OutOfPlanePlay
+
+__all__ = [
+    "save_figure",
+    "figure_motion",
+    "figure_residuals",
+    "figure_centroid",
+    "figure_play",
+    "figure_flexure",
+    "figure_out_of_plane_play",
+]
+
+_LABELS = {
+    "gamma": ("γ", "mrad", 1e3),
+    "beta": ("β", "mrad", 1e3),
+    "alpha": ("α", "mrad", 1e3),
+    "dx_nm": ("Δx", "nm", 1.0),
+    "dy_nm": ("Δy", "nm", 1.0),
+    "dz_nm": ("Δz", "nm", 1.0),
+}
+
+
+def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: int = 120) -> None:
+    """Write ``fig`` as a PNG at ``path`` atomically."""
+    dpi = check_int("dpi", dpi, minimum=1)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
+
+
+def _series_with_histogram(fig, gs, row, col, x, y, label, sigma=None):
+    ax = fig.add_subplot(gs[row, 2 * col])
+    hist = fig.add_subplot(gs[row, 2 * col + 1], sharey=ax)
+    ax.plot(x, y, ".", ms=2, color="tab:blue")
+    finite = y[np.isfinite(y)]
+    if finite.size:
+        hist.hist(finite, bins=40, orientation="horizontal", color="tab:blue")
+    if sigma is not None:
+        ax.set_title(f"{label}   (σ = {sigma:.3g})", fontsize=9)
+    else:
+        ax.set_title(label, fontsize=9)
+    hist.tick_params(labelleft=False)
+    ax.set_xlabel("motion cycle")
+    return ax
+
+
+def figure_motion(motion: pd.DataFrame, uncertainty: pd.DataFrame | None = None) -> Figure:
+    """Six degrees of freedom per motion cycle with histograms (Fig. 8a–c, e–g)."""
+    fig = Figure(figsize=(12, 6.5), layout="constrained")
+    gs = fig.add_gridspec(2, 6, width_ratios=[4, 1] * 3)
+    for k, dof in enumerate(_LABELS):
+        name, unit, scale = _LABELS[dof]
+        sigma = None
+        if uncertainty is not None and dof in uncertainty.index:
+            sigma = float(uncertainty.loc[dof, "sigma"]) * scale
+        ax = _series_with_histogram(
+            fig,
+            gs,
+            k // 3,
+            k % 3,
+            motion["frame"].to_numpy(),
+            motion[dof].to_numpy() * scale,
+            f"{name} ({unit})",
+            sigma,
+        )
+        ax.set_ylabel(f"{name} ({unit})")
+    return fig
+
+
+def figure_residuals(motion: pd.DataFrame) -> Figure:
+    """RMS residuals of the rigid transforms in x, y and z per cycle (Supp. Fig. 15)."""
+    fig = Figure(figsize=(12, 3.6), layout="constrained")
+    gs = fig.add_gridspec(1, 6, width_ratios=[4, 1] * 3)
+    for k, axis in enumerate("xyz"):
+        column = f"rms_{axis}_nm"
+        values = motion[column].to_numpy()
+        ax = _series_with_histogram(
+            fig,
+            gs,
+            0,
+            k,
+            motion["frame"].to_numpy(),
+            values,
+            f"RMS residual {axis} (nm), mean {np.nanmean(values):.3g}",
+        )
+        ax.set_ylabel(f"{axis} residual (nm)")
+    return fig
+
+
+def figure_centroid(centroids: pd.DataFrame) -> Figure:
+    """3D centroid trajectory coloured by nominal orientation (Fig. 6d)."""
+    fig = Figure(figsize=(6.5, 5.5), layout="constrained")
+    ax = fig.add_subplot(projection="3d")
+    art = ax.scatter(
+        centroids["x_nm"] / 1e3,
+        centroids["y_nm"] / 1e3,
+        centroids["z_nm"],
+        c=centroids["nominal"],
+        cmap="twilight",
+        s=4,
+    )
+    ax.set_xlabel("x (µm)")
+    ax.set_ylabel("y (µm)")
+    ax.set_zlabel("z (nm)")
+    fig.colorbar(art, ax=ax, shrink=0.6, label="nominal orientation")
+    return fig
+
+
+def figure_play(ranges: pd.DataFrame) -> Figure:
+    """Radial and axial range of the centroid at each nominal orientation, polar (Fig. 7)."""
+    fig = Figure(figsize=(10, 4.8), layout="constrained")
+    width = 2 * np.pi / max(len(ranges), 1) * 0.8
+    for k, (column, title) in enumerate(
+        [("radial_range_nm", "radial range (nm)"), ("axial_range_nm", "axial range (nm)")]
+    ):
+        ax = fig.add_subplot(1, 2, k + 1, projection="polar")
+        ax.bar(ranges["theta"], ranges[column], width=width, color=f"C{k}", alpha=0.8)
+        ax.set_title(title, fontsize=10)
+    return fig
+
+
+def figure_flexure(
+    planar: pd.DataFrame,
+    correlation: pd.DataFrame,
+    rigid_spectrum: pd.DataFrame,
+    planar_spectrum: pd.DataFrame,
+    *,
+    pair: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Figure:
+    """Planar-fit residuals, their correlation with rigid residuals, and the spectra of the RMS
+    residual series (Supp. Fig. 18). ``pair`` optionally gives (planar, rigid) residuals of one
+    particle for the scatter plot; otherwise the per-particle correlations are shown."""
+    fig = Figure(figsize=(12, 7), layout="constrained")
+    ax = fig.add_subplot(2, 2, 1)
+    ax.plot(planar["frame"], planar["res_z_nm"], ".", ms=1, alpha=0.4)
+    ax.set_xlabel("motion cycle")
+    ax.set_ylabel("planar residual z (nm)")
+    ax = fig.add_subplot(2, 2, 2)
+    if pair is not None:
+        x, y = pair
+        ax.plot(x, y, ".", ms=2)
+        ok = np.isfinite(x) & np.isfinite(y)
+        slope, intercept = np.polyfit(x[ok], y[ok], 1)
+        grid = np.linspace(np.nanmin(x), np.nanmax(x), 2)
+        ax.plot(grid, intercept + slope * grid, color="0.4")
+        ax.set_xlabel("planar residual z (nm)")
+        ax.set_ylabel("rigid residual z (nm)")
+    else:
+        ax.bar(correlation["particle"].astype(str), correlation["correlation"])
+        ax.set_xlabel("particle")
+        ax.set_ylabel("correlation, rigid vs planar")
+        ax.tick_params(axis="x", labelsize=6)
+    r = correlation["correlation"]
+    ax.set_title(f"mean correlation {r.mean():.2f} ± {r.std():.2f}", fontsize=10)
+    for k, (lo, hi) in enumerate([(0.0, 0.05), (0.05, 0.5)]):
+        ax = fig.add_subplot(2, 2, 3 + k)
+        for spectrum, label, color in (
+            (planar_spectrum, "planar", "black"),
+            (rigid_spectrum, "rigid", "tab:purple"),
+        ):
+            sel = (spectrum["frequency"] >= lo) & (spectrum["frequency"] <= hi)
+            ax.plot(
+                spectrum.loc[sel, "frequency"],
+                spectrum.loc[sel, "amplitude"],
+                color=color,
+                lw=0.8,
+                label=label,
+            )
+            peak = spectrum.loc[sel].nlargest(1, "amplitude")
+            if len(peak):
+                ax.annotate(
+                    f"{float(peak['period_cycles'].iloc[0]):.1f} cycles",
+                    (float(peak["frequency"].iloc[0]), float(peak["amplitude"].iloc[0])),
+                    fontsize=8,
+                    color=color,
+                    xytext=(4, 4),
+                    textcoords="offset points",
+                )
+        ax.set_xlabel("frequency (per motion cycle)")
+        ax.set_ylabel("amplitude of RMS z residual (nm)")
+        ax.legend(fontsize=8)
+    return fig
+
+
+def figure_out_of_plane_play(result: OutOfPlanePlay, *, z_err_nm: float | None = None) -> Figure:
+    """Largest z range of each particle against its distance from the centre (Supp. Fig. 20)."""
+    fig = Figure(figsize=(6, 4.5), layout="constrained")
+    ax = fig.add_subplot()
+    table = result.particles
+    ax.errorbar(
+        table["distance_nm"] / 1e3,
+        table["max_z_range_nm"],
+        yerr=z_err_nm,
+        fmt="o",
+        ms=4,
+        capsize=2,
+    )
+    grid = np.linspace(0.0, table["distance_nm"].max() * 1.05, 2)
+    ax.plot(grid / 1e3, result.intercept_nm + result.slope_rad * grid, color="k")
+    ax.set_xlabel("distance from centre of rotation (µm)")
+    ax.set_ylabel("maximum z range (nm)")
+    ax.set_title(
+        f"slope {result.slope_rad * 1e3:.2f} ± {result.slope_err_rad * 1e3:.2f} mrad", fontsize=10
+    )
+    return fig
