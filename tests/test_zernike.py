@@ -11,6 +11,7 @@ from latentz.zernike import (
     fit_zernike,
     lstsq_operator,
     noll_to_nm,
+    press_terms,
     truncated_lstsq_operator,
     zernike_design,
     zernike_polar,
@@ -151,6 +152,24 @@ def test_truncated_operator_keeps_most_terms_within_condition_limit():
     np.testing.assert_allclose(condition, conds[p - 1], rtol=1e-8)
     np.testing.assert_allclose(operator, np.linalg.pinv(design[:, :p]), atol=1e-9)
     assert truncated_lstsq_operator(design, max_terms=0, max_condition=10.0)[2] == 0
+
+
+def test_press_terms_minimises_naive_leave_one_out_error():
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(0, 63, 70), rng.uniform(0, 63, 70)
+    values = np.column_stack([np.sin(x / 9.0) * np.cos(y / 13.0), np.exp(-((x - 30) ** 2) / 400)])
+    values += rng.normal(0, 0.01, values.shape)
+    design = zernike_design(x, y, field_shape=(64, 64), n_terms=36)
+    press = {}
+    for p in (1, 3, 6, 10, 15, 21, 28, 36):
+        err = 0.0
+        for i in range(70):
+            keep = np.arange(70) != i
+            coef = np.linalg.lstsq(design[keep, :p], values[keep])[0]
+            err += np.sum((values[i] - design[i, :p] @ coef) ** 2)
+        press[p] = err
+    assert press_terms(design, values, max_terms=36) == min(press, key=press.get)
+    assert press_terms(design, values, max_terms=0) == 0
 
 
 def test_errors():

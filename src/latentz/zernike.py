@@ -40,6 +40,7 @@ __all__ = [
     "zernike_design",
     "lstsq_operator",
     "truncated_lstsq_operator",
+    "press_terms",
     "fit_zernike",
 ]
 
@@ -261,6 +262,45 @@ def truncated_lstsq_operator(
             return None, float("nan"), 0
         u, s, vt = np.linalg.svd(r[:p, :p])
     return (vt.T / s) @ (q[:, :p] @ u).T, float(s[0] / s[-1]), p
+
+
+def press_terms(design: np.ndarray, values: np.ndarray, *, max_terms: int) -> int:
+    """Number of leading terms that minimises the leave-one-out (PRESS) error.
+
+    Candidates are complete radial orders, ``p = (n + 1)(n + 2) / 2 <= max_terms``. For a least
+    squares fit the leave-one-out residual has the closed form ``r_i / (1 - h_ii)``, with ``r``
+    the fit residual and ``h_ii`` the leverage, the diagonal of the hat matrix
+    ``Q_p Q_p^T`` (``design[:, :p] = Q_p R_p``), so one QR factorisation scores every candidate.
+    The PRESS statistic is summed over the columns of ``values``.
+
+    Parameters
+    ----------
+    design : ndarray (n_points, >= max_terms)
+    values : ndarray (n_points, m)
+    max_terms : int
+
+    Returns
+    -------
+    int
+        The best ``p`` (0 if no candidate has finite PRESS, e.g. fewer than 2 points).
+    """
+    p_max = min(int(max_terms), design.shape[1], design.shape[0])
+    if p_max < 1:
+        return 0
+    q, _ = np.linalg.qr(design[:, :p_max])
+    projections = q.T @ values
+    resid = values.copy()
+    leverage = np.zeros(design.shape[0])
+    best, best_press, done, n = 0, np.inf, 0, 0
+    while (p := (n + 1) * (n + 2) // 2) <= p_max:
+        resid -= q[:, done:p] @ projections[done:p]
+        leverage += np.sum(q[:, done:p] ** 2, axis=1)
+        done, n = p, n + 1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            press = float(np.sum((resid / (1.0 - leverage)[:, None]) ** 2))
+        if np.isfinite(press) and np.all(leverage < 1.0 - 1e-9) and press < best_press:
+            best, best_press = p, press
+    return best
 
 
 def fit_zernike(

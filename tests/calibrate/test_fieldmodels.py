@@ -51,7 +51,14 @@ def test_zernike_matches_per_column_lstsq_with_masks():
     values = rng.normal(size=(150, 12))
     valid = _masks(150, 12, seed=5)
     model = FieldModel.from_estimate(
-        x, y, values, kind="zernike", field_shape=SHAPE, valid=valid, n_terms=45
+        x,
+        y,
+        values,
+        kind="zernike",
+        field_shape=SHAPE,
+        valid=valid,
+        n_terms=45,
+        term_selection="max",
     )
     design = zernike_design(x, y, field_shape=SHAPE, n_terms=45)
     for c in range(12):
@@ -73,6 +80,8 @@ def test_batched_equals_per_column_and_masks_are_respected(kind):
     valid = _masks(n, m, seed=8)
     garbage = np.where(valid, values, 1e9)  # invalid entries must never be used
     opts = {"kind": kind, "field_shape": SHAPE, "n_terms": 15}
+    if kind == "zernike":  # PRESS pools the columns of a pattern; "max" makes them independent
+        opts["term_selection"] = "max"
     batch = FieldModel.from_estimate(x, y, garbage, valid=valid, **opts)
     qx, qy = _particles(40, seed=9)
     full = batch(qx, qy)
@@ -147,6 +156,48 @@ def test_leave_one_out_equals_naive_refit(kind):
         assert np.isnan(resid).sum() > 0  # hull particles have no leave-one-out prediction
 
 
+def test_zernike_leave_one_out_equals_naive_refit():
+    x, y = _particles(60, seed=24)
+    values = _smooth(x, y) + np.random.default_rng(25).normal(0, 0.05, 60)
+    opts = {"kind": "zernike", "field_shape": SHAPE, "n_terms": 21, "term_selection": "max"}
+    model = FieldModel.from_estimate(x, y, values, **opts)
+    naive = np.empty(60)
+    for i in range(60):
+        keep = np.arange(60) != i
+        other = FieldModel.from_estimate(x[keep], y[keep], values[keep], **opts)
+        assert other.n_terms_effective[0] == 21
+        naive[i] = values[i] - other(x[i], y[i])[0]
+    np.testing.assert_allclose(model.residuals(leave_one_out=True), naive, rtol=1e-8, atol=1e-10)
+    with pytest.raises(ValueError, match="`leave_one_out` must be True for 'nearest'"):
+        FieldModel.from_estimate(x, y, values, kind="nearest", field_shape=SHAPE).residuals(
+            leave_one_out=False
+        )
+
+
+def test_press_selection_is_honest_where_fit_residuals_are_not():
+    """Many terms fit the particles better and the field between them far worse."""
+    x, y = _particles(300, seed=26)
+    rng = np.random.default_rng(27)
+    values = _smooth(x, y) + rng.normal(0, 0.02, x.size)
+    qx, qy = _particles(3000, seed=28)
+    opts = {"kind": "zernike", "field_shape": SHAPE, "n_terms": 150}
+    press = FieldModel.from_estimate(x, y, values, **opts)
+    greedy = FieldModel.from_estimate(x, y, values, **opts, term_selection="max")
+    assert press.n_terms_effective[0] < greedy.n_terms_effective[0] == 150
+
+    def rms(a):
+        return float(np.sqrt(np.mean(a**2)))
+
+    true_press = rms(press(qx, qy) - _smooth(qx, qy))
+    true_greedy = rms(greedy(qx, qy) - _smooth(qx, qy))
+    assert rms(greedy.residuals()) < rms(press.residuals())  # fit residuals mislead...
+    assert true_greedy > 3 * true_press  # ...the truth between particles says otherwise
+    # Leave-one-out errors track the truth: the error between particles plus the noise.
+    for model, truth in ((press, true_press), (greedy, true_greedy)):
+        loo = rms(model.residuals(leave_one_out=True))
+        assert 0.5 < loo / np.hypot(truth, 0.02) < 2.0
+
+
 @pytest.mark.parametrize(("kind", "order"), [("nearest", 1.0), ("natural", 2.0)])
 def test_interpolants_converge_with_density(kind, order):
     """Nearest-neighbour error falls as spacing h ~ n^-1/2, natural-neighbour as h^2."""
@@ -167,7 +218,7 @@ def test_zernike_reduces_terms_with_few_particles_and_warns():
     valid[10:, 1] = False  # column 1 keeps 10 particles
     with pytest.warns(UserWarning, match="2 of 2 column"):
         model = FieldModel.from_estimate(
-            x, y, values, kind="zernike", field_shape=SHAPE, valid=valid
+            x, y, values, kind="zernike", field_shape=SHAPE, valid=valid, term_selection="max"
         )
     assert model.n_terms_effective.tolist() == [15, 5]
     with pytest.warns(UserWarning, match="Columns with 0 terms are NaN"):
