@@ -75,7 +75,7 @@ def test_distortion_field_models_the_residual_displacement():
     assert fit.used.all()  # systematic distortion is not mistaken for outliers
     left = fit.distortion.residuals()
     # After the Zernike distortion field only the noise is left, shrunk by the fitted terms.
-    expected = 0.02 * np.sqrt(1 - (15 + 3) / n_real)
+    expected = 0.02 * np.sqrt(1 - (fit.distortion.n_terms_effective[0] + 3) / n_real)
     assert np.sqrt(np.mean(left**2)) == pytest.approx(expected, rel=4 / np.sqrt(2 * n_real))
     np.testing.assert_allclose(fit.distortion(x, y), fit.residuals() - left, atol=1e-12)
 
