@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from latentz.motion import analyses as A
 from latentz.motion import figures as F
 from latentz.motion.rigid import rigid_motion
 from latentz.motion.uncertainty import motion_uncertainty
@@ -22,25 +21,12 @@ def data():
 
 
 def _figures(tracks, motion):
-    centroids = A.centroid_trajectory(tracks, motion)
-    planar = A.planar_residuals(tracks)
-    rms = np.sqrt((planar["res_z_nm"] ** 2).groupby(planar["frame"]).mean())
-    spectra = (
-        A.residual_spectrum(motion["frame"].to_numpy(), motion["rms_z_nm"].to_numpy()),
-        A.residual_spectrum(rms.index.to_numpy(), rms.to_numpy()),
-    )
-    return {
-        "motion": F.figure_motion(motion, motion_uncertainty(tracks, motion, n_sim=20)),
-        "residuals": F.figure_residuals(motion),
-        "centroid": F.figure_centroid(centroids),
-        "play": F.figure_play(A.play(centroids)),
-        "flexure": F.figure_flexure(planar, A.residual_correlation(tracks), *spectra),
-        "out_of_plane": F.figure_out_of_plane_play(A.out_of_plane_play(tracks, motion)),
-    }
+    return F.motion_figures(tracks, motion, motion_uncertainty(tracks, motion, n_sim=20))
 
 
 def test_every_figure_renders_and_saves(data, tmp_path):
     figures = _figures(*data)
+    assert set(figures) == {"motion", "residuals", "centroid", "play", "flexure", "out_of_plane"}
     expected_axes = {"motion": 12, "residuals": 6, "play": 2, "flexure": 4, "out_of_plane": 1}
     for name, fig in figures.items():
         assert isinstance(fig, Figure)

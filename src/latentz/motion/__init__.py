@@ -24,6 +24,7 @@ from latentz.motion.figures import (
     figure_out_of_plane_play,
     figure_play,
     figure_residuals,
+    motion_figures,
     save_figure,
 )
 from latentz.motion.link import link
@@ -57,6 +58,7 @@ __all__ = [
     "icp_motion",
     "kabsch",
     "link",
+    "motion_figures",
     "motion_uncertainty",
     "nominal_orientation",
     "out_of_plane_play",

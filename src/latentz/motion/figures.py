@@ -15,9 +15,11 @@ from matplotlib.figure import Figure
 
 from latentz._shared.atomic import atomic_path
 from latentz._shared.validate import check_int
+from latentz.motion import analyses
 from latentz.motion.analyses import OutOfPlanePlay
 
 __all__ = [
+    "motion_figures",
     "save_figure",
     "figure_motion",
     "figure_residuals",
@@ -219,3 +221,39 @@ def figure_out_of_plane_play(result: OutOfPlanePlay, *, z_err_nm: float | None =
         f"slope {result.slope_rad * 1e3:.2f} ± {result.slope_err_rad * 1e3:.2f} mrad", fontsize=10
     )
     return fig
+
+
+def motion_figures(
+    tracks: pd.DataFrame,
+    motion: pd.DataFrame,
+    uncertainty: pd.DataFrame | None = None,
+    *,
+    steps_per_rev: int = 64,
+) -> dict[str, Figure]:
+    """Run every analysis on linked ``tracks`` and their ``motion`` and return all figures.
+
+    Keys: motion, residuals, centroid, play, flexure, and out_of_plane (only when particles
+    revisit nominal locations, i.e. more than one revolution).
+    """
+    centroids = analyses.centroid_trajectory(tracks, motion, steps_per_rev=steps_per_rev)
+    planar = analyses.planar_residuals(tracks)
+    rms = np.sqrt((planar["res_z_nm"] ** 2).groupby(planar["frame"]).mean())
+    rigid_spectrum = analyses.residual_spectrum(
+        motion["frame"].to_numpy(), motion["rms_z_nm"].to_numpy()
+    )
+    planar_spectrum = analyses.residual_spectrum(rms.index.to_numpy(), rms.to_numpy())
+    figures = {
+        "motion": figure_motion(motion, uncertainty),
+        "residuals": figure_residuals(motion),
+        "centroid": figure_centroid(centroids),
+        "play": figure_play(analyses.play(centroids)),
+        "flexure": figure_flexure(
+            planar, analyses.residual_correlation(tracks), rigid_spectrum, planar_spectrum
+        ),
+    }
+    if len(motion) >= steps_per_rev + 1:
+        result = analyses.out_of_plane_play(tracks, motion, steps_per_rev=steps_per_rev)
+        figures["out_of_plane"] = figure_out_of_plane_play(
+            result, z_err_nm=float(np.sqrt(np.nanmean(motion["rms_z_nm"] ** 2)))
+        )
+    return figures
