@@ -5,9 +5,10 @@ calibration particles (z for a shape value, or Delta x', Delta y' for a z) into 
 lateral position. The paper compares three models, all behind one interface here:
 
 ``"zernike"``
-    Least-squares fit of the first ``n_terms`` Noll Zernike polynomials on the disk that
-    circumscribes the field (:mod:`latentz.zernike`). Its error estimate is the fit residual at
-    each particle.
+    Least-squares fit of leading Noll Zernike polynomials (at most ``n_terms``, the paper's 400)
+    on the disk that circumscribes the field (:mod:`latentz.zernike`); by default the number of
+    terms minimises the leave-one-out error. The paper's error estimate is the fit residual at
+    each particle; the leave-one-out residual is available too, and is the honest one.
 ``"natural"``
     Natural-neighbour (Sibson) interpolation; NaN outside the convex hull of the valid particles,
     never extrapolated. Error estimate: leave-one-out. The weights are computed here, vectorised
