@@ -138,7 +138,7 @@ def test_nearest_matches_brute_force():
 
 @pytest.mark.parametrize("kind", ["natural", "nearest"])
 def test_leave_one_out_equals_naive_refit(kind):
-    n = 150
+    n = 80
     x, y = _particles(n, seed=14)
     values = _smooth(x, y)
     model = FieldModel.from_estimate(x, y, values, kind=kind, field_shape=SHAPE)
