@@ -18,3 +18,14 @@ def test_version_matches_installed_metadata():
 
     assert latentz.__version__ == version("latentz")
     assert importlib.import_module("latentz._version").__version__ == latentz.__version__
+
+
+def test_all_matches_the_lazy_export_table():
+    assert set(latentz.__all__) - {"__version__"} == set(latentz._EXPORTS)
+
+
+def test_unknown_attribute_is_an_attribute_error():
+    import pytest
+
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        latentz.nope  # noqa: B018
