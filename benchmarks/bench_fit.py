@@ -23,10 +23,12 @@ two standard deviations) and fits them with, on two threads each:
 - ``scipy.optimize.least_squares`` (``method="lm"``, analytic Jacobian of eq. 1) one ROI at a
   time in Python, on the first ``--n-scipy`` ROIs.
 
-Timings are the best of ``--rounds`` interleaved rounds (the machine is shared) and include each
-method's own start / seeds. Precision: the standard deviation of error / Cramér–Rao bound for x
-and y over *all* ROIs, its robust twin (1.4826 x MAD), and the fraction of gross failures
-(|error| > 5 bounds in x or y, or no finite result).
+Timings are the best of ``--rounds`` rounds on the first ``--n-time`` ROIs, the methods taking turns
+in a random order each round (the machine is shared, so the best of many short runs is the stable
+statistic); they include each method's own start / seeds. Precision, from one run over all
+``--n`` ROIs: the standard deviation of error / Cramér–Rao bound for x and y, its robust twin
+(1.4826 x MAD), and the fraction of gross failures (|error| > 5 bounds in x or y, or no finite
+result).
 """
 
 from __future__ import annotations
@@ -143,9 +145,10 @@ def precision(xy: np.ndarray, truth: np.ndarray, bound: np.ndarray) -> dict[str,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--n", type=int, default=100_000, help="ROIs per size")
+    parser.add_argument("--n", type=int, default=100_000, help="ROIs per size (precision)")
+    parser.add_argument("--n-time", type=int, default=20_000, help="ROIs per timed run")
     parser.add_argument("--n-scipy", type=int, default=2_000, help="ROIs for the SciPy loop")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
+    parser.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds")
     parser.add_argument("--out", help="also write the Markdown table here (atomically)")
     args = parser.parse_args()
 
@@ -163,15 +166,21 @@ def main() -> None:
     for size in (7, 11):
         truth, rois = simulate(args.n, size, seed=size)
         bound = crlb(truth, shape=size)
-        best = dict.fromkeys(methods, np.inf)
-        results = {}
         for run in methods.values():  # compile / warm up
             run(rois[:50])
-        for _ in range(args.rounds):
-            for name, run in methods.items():
-                n = args.n_scipy if name.startswith("scipy") else args.n
+        results = {  # precision over all ROIs (untimed)
+            name: run(rois[: args.n_scipy if name.startswith("scipy") else args.n])
+            for name, run in methods.items()
+        }
+        best = dict.fromkeys(methods, np.inf)
+        order = list(methods)
+        rng = np.random.default_rng(0)
+        for _ in range(args.rounds):  # speed: best of interleaved rounds, in random order
+            rng.shuffle(order)
+            for name in order:
+                n = min(args.n_scipy if name.startswith("scipy") else args.n_time, args.n)
                 t0 = time.perf_counter()
-                results[name] = run(rois[:n])
+                methods[name](rois[:n])
                 best[name] = min(best[name], (time.perf_counter() - t0) / n)
         for name in methods:
             n = len(results[name])
