@@ -65,3 +65,14 @@ def test_z_file_length_must_match(tmp_path):
     (tmp_path / "z.txt").write_text("1\n2\n")
     with pytest.raises(ValueError, match="3 planes but 2"):
         z_positions(3, z_file=tmp_path / "z.txt")
+
+
+def test_stage_offsets(tmp_path):
+    from latentz.cli_options import stage_offsets_px
+
+    (tmp_path / "o.csv").write_text("# x,y\n0,0\n512,0\n")
+    np.testing.assert_array_equal(stage_offsets_px(tmp_path / "o.csv", 2), [[0, 0], [512, 0]])
+    with pytest.raises(ValueError, match="must hold 3 finite"):
+        stage_offsets_px(tmp_path / "o.csv", 3)
+    with pytest.raises(FileNotFoundError, match="stage-offset"):
+        stage_offsets_px(tmp_path / "none.csv", 2)

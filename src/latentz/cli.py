@@ -57,5 +57,216 @@ def simulate(kind: str, out_dir: Path, seed: int, quick: bool, plot: bool) -> No
         click.echo(str(path))
 
 
+def _quiet_option(func):
+    return click.option("--quiet", is_flag=True, help="No progress bars.")(func)
+
+
+def _camera_options(func):
+    options = [
+        click.option(
+            "--camera",
+            "camera_file",
+            type=click.Path(dir_okay=False),
+            help="Camera JSON: offset, gain, readnoise, pixel_size_nm[, flatfield].",
+        ),
+        click.option("--offset", type=float, help="Camera offset, ADU."),
+        click.option("--gain", type=float, help="Camera gain, photoelectrons per ADU."),
+        click.option("--readnoise", type=float, help="Read noise, photoelectrons."),
+        click.option("--pixel-size-nm", type=float, help="Pixel size in the sample, nm."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def _progress(quiet: bool) -> bool:
+    return not quiet and sys.stderr.isatty()
+
+
+@main.command()
+@click.argument("stacks", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--z-start", "z_start_nm", type=float, help="Piezo z of the first plane, nm.")
+@click.option("--z-step", "z_step_nm", type=float, help="Piezo step between planes, nm.")
+@click.option("--z-file", type=click.Path(dir_okay=False), help="Piezo z of each plane, nm.")
+@click.option(
+    "--stage-offsets",
+    type=click.Path(dir_okay=False),
+    help="CSV, one 'x_px,y_px' row per stack: where its pixel [0, 0] lies in the field.",
+)
+@_camera_options
+@click.option(
+    "--shape",
+    default="rho_A",
+    show_default=True,
+    type=click.Choice(["rho", "rho_w", "rho_A", "auto", "auto_A"]),
+)
+@click.option(
+    "--field-model",
+    default="zernike",
+    show_default=True,
+    type=click.Choice(["zernike", "natural", "nearest"]),
+)
+@click.option("--n-terms", default=400, show_default=True, help="Zernike terms.")
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Calibration file to write (HDF5).",
+)
+@_quiet_option
+def calibrate(
+    stacks,
+    z_start_nm,
+    z_step_nm,
+    z_file,
+    stage_offsets,
+    camera_file,
+    offset,
+    gain,
+    readnoise,
+    pixel_size_nm,
+    shape,
+    field_model,
+    n_terms,
+    out,
+    quiet,
+) -> None:
+    """Calibrate from through-focus stacks (one per stage position)."""
+    from latentz.calibrate import calibrate as run_calibration
+    from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
+    from latentz.io import read_stack
+
+    camera = camera_from_options(
+        camera_file, offset=offset, gain=gain, readnoise=readnoise, pixel_size_nm=pixel_size_nm
+    )
+    loaded = [read_stack(path) for path in stacks]
+    if len({s.shape[0] for s in loaded}) != 1:
+        raise ValueError("Every calibration stack must have the same number of planes.")
+    z = z_positions(loaded[0].shape[0], z_start_nm=z_start_nm, z_step_nm=z_step_nm, z_file=z_file)
+    offsets = None if stage_offsets is None else stage_offsets_px(stage_offsets, len(loaded))
+    cal = run_calibration(
+        [s.compute() for s in loaded],
+        z,
+        camera=camera,
+        shape=shape,
+        field_model=field_model,
+        n_terms=n_terms,
+        progress=_progress(quiet),
+        stage_offsets_px=offsets,
+        sources=[str(p) for p in stacks],
+    )
+    cal.save(out)
+    click.echo(
+        f"{out}: {len(cal.kept)} of {len(cal.culled)} particles kept, tilt {cal.tilt_mrad:.2f} mrad"
+    )
+
+
+@main.command()
+@click.argument("movies", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--calibration",
+    "cal_path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Calibration file from `latentz calibrate`.",
+)
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Localization table (.parquet, .csv, or .hdf5 with --format picasso).",
+)
+@click.option(
+    "--format",
+    "fmt",
+    default=None,
+    type=click.Choice(["parquet", "csv", "picasso"]),
+    help="Output format (default from the suffix).",
+)
+@click.option("--roi-size", default=11, show_default=True, help="ROI side, pixels (odd).")
+@click.option("--threshold", type=float, help="Detection threshold, background-noise units.")
+@click.option("--chunk-frames", default=200, show_default=True, help="Frames per chunk.")
+@click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")
+@click.option("--scheduler", default=None, help="dask.distributed scheduler address.")
+@_quiet_option
+def localize(
+    movies, cal_path, out, fmt, roi_size, threshold, chunk_frames, resume, scheduler, quiet
+) -> None:
+    """Localize every emitter in 3D with a calibration."""
+    from latentz.pipeline import localize_movies
+
+    table = localize_movies(
+        movies,
+        cal_path,
+        out,
+        fmt=fmt,
+        roi_size=roi_size,
+        threshold=threshold,
+        chunk_frames=chunk_frames,
+        resume=resume,
+        scheduler=scheduler,
+        progress=_progress(quiet),
+    )
+    click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
+
+
+@main.command()
+@click.argument("locs", type=click.Path(dir_okay=False))
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Motion table (.csv or .parquet); uncertainty and Table 1 go beside it.",
+)
+@click.option(
+    "--search-range-nm",
+    default=2000.0,
+    show_default=True,
+    help="Largest displacement of a particle between frames, nm.",
+)
+@click.option("--memory", default=2, show_default=True, help="Frames a particle may vanish.")
+@click.option("--n-sim", default=10000, show_default=True, help="Monte Carlo simulations.")
+@click.option("--seed", default=0, show_default=True)
+@_quiet_option
+def track(locs, out, search_range_nm, memory, n_sim, seed, quiet) -> None:
+    """Link localizations and measure rigid motion in six degrees of freedom."""
+    from latentz.pipeline import track_file
+
+    motion = track_file(
+        locs, out, search_range_nm=search_range_nm, memory=memory, n_sim=n_sim, seed=seed
+    )
+    click.echo(f"{out}: {len(motion)} transitions")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path))
+def report(run_dir: Path, out: Path) -> None:
+    """Write one self-contained HTML report of a run folder."""
+    from latentz.pipeline import report_run
+
+    click.echo(str(report_run(run_dir, out)))
+
+
+@main.command()
+@click.option(
+    "--out",
+    "out_dir",
+    default="demo-run",
+    show_default=True,
+    type=click.Path(file_okay=False, path_type=Path),
+)
+@click.option("--quick", is_flag=True, help="A small run (under a minute).")
+@click.option("--seed", default=0, show_default=True)
+@_quiet_option
+def demo(out_dir: Path, quick: bool, seed: int, quiet: bool) -> None:
+    """Simulate, calibrate, localize, track and report: the whole job on built-in data."""
+    from latentz.demo import run_demo
+
+    summary = run_demo(out_dir, quick=quick, seed=seed, progress=not quiet)
+    for line in summary:
+        click.echo(line)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -14,7 +14,7 @@ import numpy as np
 from latentz._shared.validate import check_finite, check_int, check_positive
 from latentz.camera import Camera
 
-__all__ = ["camera_from_options", "z_positions"]
+__all__ = ["camera_from_options", "stage_offsets_px", "z_positions"]
 
 
 def camera_from_options(
@@ -86,3 +86,20 @@ def z_positions(
     if z.size != n_planes:
         raise ValueError(f"The stack has {n_planes} planes but {z.size} z positions were given.")
     return z
+
+
+def stage_offsets_px(path: str | os.PathLike, n_stacks: int) -> np.ndarray:
+    """(x, y) field position of each stack's pixel [0, 0] (pixels), from a CSV row per stack."""
+    source = Path(path)
+    if not source.exists():
+        raise FileNotFoundError(f"No such stage-offset file: {source}")
+    try:
+        offsets = np.loadtxt(source, dtype=np.float64, delimiter=",", ndmin=2, comments="#")
+    except ValueError as exc:
+        raise ValueError(f"Stage-offset file {source.name} must hold 'x,y' rows: {exc}") from exc
+    if offsets.shape != (n_stacks, 2) or not np.all(np.isfinite(offsets)):
+        raise ValueError(
+            f"Stage-offset file {source.name} must hold {n_stacks} finite 'x,y' rows "
+            f"(one per stack), got shape {offsets.shape}."
+        )
+    return offsets

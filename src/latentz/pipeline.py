@@ -1,0 +1,242 @@
+"""The file-level pipeline behind the CLI: movies -> localizations -> motion -> report.
+
+Each function composes the array/table stages and adds what a run on real files needs:
+provenance, resumable chunking, atomic outputs.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import os
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from latentz import __version__
+from latentz._shared.validate import check_choice
+
+__all__ = [
+    "file_digest",
+    "provenance",
+    "localize_movies",
+    "track_file",
+    "motion_outputs",
+    "report_run",
+]
+
+
+def file_digest(path: str | os.PathLike, *, block: int = 1 << 20) -> str:
+    """SHA-256 of a file, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(block):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def provenance(inputs: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
+    """Metadata that every output carries: inputs (name, size, SHA-256), options, version, date."""
+    described = {}
+    for role, paths in inputs.items():
+        items = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
+        described[role] = [
+            {"name": str(p), "bytes": Path(p).stat().st_size, "sha256": file_digest(p)}
+            for p in items
+        ]
+    return {
+        "latentz_version": __version__,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "inputs": described,
+        "options": options,
+    }
+
+
+def localize_movies(
+    movies: list[str | os.PathLike],
+    calibration: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    fmt: str | None = None,
+    roi_size: int = 11,
+    threshold: float | None = None,
+    chunk_frames: int = 200,
+    resume: bool = False,
+    scheduler: Any = None,
+    progress: bool = False,
+) -> pd.DataFrame:
+    """Localize movies in 3D with a calibration file and write one table with provenance.
+
+    The movies are read lazily and processed ``chunk_frames`` at a time (memory is bounded by
+    the chunk, not the movie); an interrupted run resumes with ``resume=True``. Frames are
+    numbered consecutively across movies, and a ``movie`` column names the source.
+    """
+    import dask.array as da
+
+    from latentz.calibrate import Calibration
+    from latentz.chunked import run_chunked
+    from latentz.io import read_stack
+    from latentz.localize import localize
+
+    if fmt is not None:
+        check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
+    target = Path(out)
+    if fmt is None and target.suffix.lower() == ".hdf5":
+        fmt = "picasso"
+    cal = Calibration.load(calibration)
+    stacks = [read_stack(m) for m in movies]
+    if len({s.shape[1:] for s in stacks}) != 1:
+        raise ValueError("Every movie must have the same frame size.")
+    frames = da.concatenate(stacks, axis=0) if len(stacks) > 1 else stacks[0]
+    bounds = pd.Series([s.shape[0] for s in stacks]).cumsum().to_numpy()
+    options = {"roi_size": roi_size, "threshold": threshold, "chunk_frames": chunk_frames}
+    meta = provenance({"movies": movies, "calibration": calibration}, options)
+
+    def process(start: int, stop: int) -> pd.DataFrame:
+        spots = localize(
+            frames[start:stop],
+            camera=cal.camera,
+            roi_size=roi_size,
+            threshold=threshold,
+            scheduler=scheduler,
+        )
+        spots["frame"] = spots["frame"] + start
+        located = cal.apply(spots)
+        located.insert(
+            1,
+            "movie",
+            [str(movies[i]) for i in bounds.searchsorted(located["frame"], side="right")],
+        )
+        return located
+
+    manifest = {"inputs": meta["inputs"], "options": options}
+    table_path = target if fmt != "picasso" else target.with_suffix(".parquet")
+    table = run_chunked(
+        frames.shape[0],
+        process,
+        table_path,
+        manifest=manifest,
+        chunk_frames=chunk_frames,
+        resume=resume,
+        metadata=meta,
+        progress=progress,
+    )
+    if fmt == "picasso":
+        from latentz.picasso_format import write_picasso
+
+        table_path.unlink()
+        write_picasso(
+            table,
+            target,
+            width=frames.shape[2],
+            height=frames.shape[1],
+            n_frames=frames.shape[0],
+            pixel_size_nm=cal.camera.pixel_size_nm,
+            info={"latentz": meta},
+        )
+    return table
+
+
+def motion_outputs(out: str | os.PathLike) -> dict[str, Path]:
+    """The files ``track`` writes for a motion table ``out``: tracks, uncertainty, Table 1."""
+    target = Path(out)
+    stem = target.with_suffix("")
+    return {
+        "motion": target,
+        "tracks": stem.with_name(stem.name + ".tracks.parquet"),
+        "uncertainty": stem.with_name(stem.name + ".uncertainty.csv"),
+        "table1": stem.with_name(stem.name + ".table1.csv"),
+    }
+
+
+def track_tables(
+    locs: pd.DataFrame,
+    *,
+    search_range_nm: float = 5000.0,
+    memory: int = 3,
+    n_sim: int = 10000,
+    seed: int = 0,
+    static_frames: list[int] | None = None,
+) -> dict[str, pd.DataFrame]:
+    """Link the in-range localizations, fit rigid motion, its Monte Carlo uncertainty and
+    Table 1 (with drift from ``static_frames``, frames without intentional motion)."""
+    from latentz._shared.validate import check_columns
+    from latentz.motion import drift, link, motion_uncertainty, rigid_motion, table1
+
+    check_columns("locs", locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
+    kept = locs[locs["in_range"].astype(bool)]
+    if kept["frame"].nunique() < 2:
+        raise ValueError("Tracking needs in-range localizations in at least two frames.")
+    moving = kept if not static_frames else kept[~kept["frame"].isin(static_frames)]
+    tracks = link(moving, search_range_nm=search_range_nm, memory=memory, predict=True)
+    motion = rigid_motion(tracks)
+    uncertainty = motion_uncertainty(tracks, motion, n_sim=n_sim, seed=seed)
+    drift_nm = None
+    if static_frames:
+        still = link(kept[kept["frame"].isin(static_frames)], search_range_nm=search_range_nm)
+        drift_nm = drift(still)
+    summary = table1(motion, uncertainty, drift_nm=drift_nm)
+    return {"tracks": tracks, "motion": motion, "uncertainty": uncertainty, "table1": summary}
+
+
+def track_file(
+    locs_path: str | os.PathLike,
+    out: str | os.PathLike,
+    **options: Any,
+) -> pd.DataFrame:
+    """:func:`track_tables` on a localization file; writes the motion table and its siblings
+    (:func:`motion_outputs`) with provenance; returns the motion table."""
+    from latentz.io import read_table, write_table
+
+    locs, _ = read_table(locs_path)
+    tables = track_tables(locs, **options)
+    meta = provenance({"localizations": locs_path}, options)
+    meta["centre_of_rotation_nm"] = list(tables["motion"].attrs.get("centre_nm", []))
+    paths = motion_outputs(out)
+    write_table(tables["tracks"], paths["tracks"], metadata=meta)
+    write_table(tables["uncertainty"].reset_index(names="dof"), paths["uncertainty"])
+    write_table(tables["table1"].reset_index(names="dof"), paths["table1"])
+    write_table(tables["motion"], paths["motion"], metadata=meta)
+    return tables["motion"]
+
+
+def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Write one HTML report of whatever a run folder holds: calibration (``*.h5``),
+    localization tables (``*.parquet``) and motion tables (with their ``track`` siblings)."""
+    from latentz import sections
+    from latentz.calibrate import Calibration
+    from latentz.io import read_table
+    from latentz.report import write_report
+
+    folder = Path(run_dir)
+    parts = []
+    for path in sorted(folder.glob("*.h5")):
+        cal = Calibration.load(path)
+        parts.append(sections.calibration_section(cal))
+        widefield = sections.widefield_section(cal)
+        if widefield is not None:
+            parts.append(widefield)
+    for path in sorted(folder.glob("*.parquet")):
+        if path.name.endswith(".tracks.parquet"):
+            continue
+        table, _ = read_table(path)
+        if {"z_nm", "in_range", "x_err_nm"} <= set(table.columns):
+            parts.append(sections.localization_section(table))
+    for path in sorted(folder.glob("*.tracks.parquet")):
+        paths = motion_outputs(path.with_name(path.name.replace(".tracks.parquet", ".csv")))
+        if not all(p.exists() for p in paths.values()):
+            continue
+        tracks = read_table(paths["tracks"])[0]
+        motion = read_table(paths["motion"])[0]
+        unc = read_table(paths["uncertainty"])[0].set_index("dof")
+        summary = read_table(paths["table1"])[0].set_index("dof")
+        parts.append(sections.motion_section(tracks, motion, unc, summary))
+    if not parts:
+        raise ValueError(f"{folder} holds no calibration, localization or motion files.")
+    return write_report(
+        parts,
+        out,
+        title=f"latentz report: {folder.name}",
+        png_dir=Path(out).with_suffix("").with_name(Path(out).stem + "-figures"),
+    )
