@@ -29,6 +29,7 @@ __all__ = ["localize", "LOCALIZE_COLUMNS"]
 #: Columns of the table returned by `localize`, in order.
 LOCALIZE_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
 _LOCAL_SCHEDULERS = ("threads", "processes", "synchronous")
+_CHUNK_BYTES = 64 * 2**20
 
 
 def _localize_chunk(
@@ -100,7 +101,7 @@ def localize(
     scheduler: Any = None,
     progress: bool = False,
     sigma: float = 1.5,
-    chunk_frames: int = 32,
+    chunk_frames: int | None = None,
 ) -> pd.DataFrame:
     """Detect and fit every emitter in a movie.
 
@@ -124,8 +125,9 @@ def localize(
         Show a progress bar over frames.
     sigma : float
         Smoothing scale of the detection band-pass, in pixels (about the spot width).
-    chunk_frames : int
-        Frames per task; a few chunks are held in memory at once.
+    chunk_frames : int, optional
+        Frames per task; a few chunks (one per worker thread) are held in memory at once. The
+        default keeps a chunk near 64 MB of float64 frames.
 
     Returns
     -------
@@ -140,6 +142,8 @@ def localize(
         raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
     check_choice("method", method, METHODS)
     roi_size = check_int("roi_size", roi_size, minimum=3)
+    if chunk_frames is None:
+        chunk_frames = max(1, _CHUNK_BYTES // (8 * movie.shape[1] * movie.shape[2]))
     chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)
     if roi_size % 2 == 0 or roi_size > min(movie.shape[1:]):
         raise ValueError(
