@@ -27,6 +27,8 @@ simulations to bound memory.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 
@@ -92,7 +94,9 @@ def _replay(pos, rot, trans, valid):
 def _noise_moments(res, both):
     """Per-particle mean and variance of the residuals (P, 3); pooled values where < 2 samples."""
     count = both.sum(axis=0)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        # particles seen in fewer than two transitions get the pooled values below
+        warnings.simplefilter("ignore", RuntimeWarning)
         mean = np.nanmean(np.where(both[..., None], res, np.nan), axis=0)
         var = np.nanvar(np.where(both[..., None], res, np.nan), axis=0, ddof=1)
     pooled = np.nanmean(np.where(both[..., None], res, np.nan) ** 2, axis=(0, 1))
