@@ -1,0 +1,223 @@
+"""Widefield models: z(x', y'; s) and Δx', Δy'(x', y'; z) over the whole field (METHOD.md 15-20).
+
+Each calibration particle gives z for a shape value s (its inverse function, inside its monotonic
+range) and Δx'(z), Δy'(z). A :class:`~latentz.calibrate.fieldmodels.FieldModel` turns those values
+into functions of field position. To localize many spots without a least-squares problem per
+spot, the values are tabulated on fine grids of s and z (one field-model column per grid value;
+the work that depends only on which particles are valid is shared by the columns with the same
+validity pattern), and each spot interpolates linearly between the two columns around its s
+(then its z).
+
+Range: a spot is in range only if, among its ``k_near`` nearest calibration particles, at least
+``min_fraction`` cover its s (both tabulated columns around it); otherwise z is NaN and
+``in_range`` False. Nothing is extrapolated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from latentz._shared.validate import check_array, check_int, check_positive
+from latentz.calibrate.fieldmodels import FieldModel
+from latentz.zernike import zernike_design
+
+__all__ = ["WidefieldModel"]
+
+
+def _bracket(grid: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Left column index, weight of the right column, and whether v is inside the grid."""
+    inside = np.isfinite(v) & (v >= grid[0]) & (v <= grid[-1])
+    j = np.clip(np.searchsorted(grid, np.where(inside, v, grid[0])) - 1, 0, grid.size - 2)
+    t = (np.where(inside, v, grid[0]) - grid[j]) / (grid[j + 1] - grid[j])
+    return j, t, inside
+
+
+@dataclass(frozen=True, eq=False)
+class WidefieldModel:
+    """Tabulated widefield axial and lateral models.
+
+    Attributes
+    ----------
+    s_grid : ndarray (m_s,)
+        Shape values of the axial columns, increasing.
+    z_grid_nm : ndarray (m_z,)
+        Heights of the lateral columns (tilt-corrected nm), increasing.
+    axial : FieldModel
+        ``m_s`` columns: z (nm) at each particle for each ``s_grid`` value.
+    dx, dy : FieldModel
+        ``m_z`` columns: Δx', Δy' (pixels) for each ``z_grid_nm`` value.
+    k_near : int
+        Number of nearest particles checked for range.
+    min_fraction : float
+        Fraction of those that must cover a spot's s.
+    """
+
+    s_grid: np.ndarray
+    z_grid_nm: np.ndarray
+    axial: FieldModel
+    dx: FieldModel
+    dy: FieldModel
+    k_near: int
+    min_fraction: float
+
+    @classmethod
+    def from_tables(
+        cls,
+        x_px: np.ndarray,
+        y_px: np.ndarray,
+        s_grid: np.ndarray,
+        z_table_nm: np.ndarray,
+        z_grid_nm: np.ndarray,
+        dx_table_px: np.ndarray,
+        dy_table_px: np.ndarray,
+        *,
+        kind: str,
+        field_shape: tuple[int, int],
+        n_terms: int = 400,
+        k_near: int = 6,
+        min_fraction: float = 0.5,
+    ) -> WidefieldModel:
+        """Build from values tabulated at the particles.
+
+        Parameters
+        ----------
+        x_px, y_px : ndarray (n,)
+            Calibration particle positions in the field, pixels.
+        s_grid : ndarray (m_s,)
+            Increasing shape values.
+        z_table_nm : ndarray (n, m_s)
+            z of each particle at each s (NaN outside its range), nm.
+        z_grid_nm : ndarray (m_z,)
+            Increasing heights, nm.
+        dx_table_px, dy_table_px : ndarray (n, m_z)
+            Δx', Δy' of each particle at each z (NaN where unknown), pixels.
+        kind : {"zernike", "natural", "nearest"}
+        field_shape : (int, int)
+        n_terms : int
+            Maximum Zernike terms.
+        k_near : int
+            Nearest particles consulted for the range test.
+        min_fraction : float
+            In (0, 1]: fraction of those that must cover the spot's s.
+        """
+        s_grid = check_array("s_grid", s_grid, ndim=1, dtype_kind="f")
+        z_grid = check_array("z_grid_nm", z_grid_nm, ndim=1, dtype_kind="f")
+        for name, grid in (("s_grid", s_grid), ("z_grid_nm", z_grid)):
+            if grid.size < 2 or np.any(np.diff(grid) <= 0):
+                raise ValueError(f"Expected `{name}` strictly increasing with >= 2 values.")
+        k_near = check_int("k_near", k_near, minimum=1)
+        min_fraction = check_positive("min_fraction", min_fraction)
+        if min_fraction > 1:
+            raise ValueError(f"Expected `min_fraction` in (0, 1], got {min_fraction!r}.")
+        opts = {"kind": kind, "field_shape": field_shape}
+        if kind == "zernike":
+            opts["n_terms"] = n_terms
+        axial = FieldModel.from_estimate(x_px, y_px, z_table_nm, **opts)
+        dx = FieldModel.from_estimate(x_px, y_px, dx_table_px, **opts)
+        dy = FieldModel.from_estimate(x_px, y_px, dy_table_px, **opts)
+        for name, model, grid in (("z_table_nm", axial, s_grid), ("dx_table_px", dx, z_grid)):
+            if model.n_columns != grid.size:
+                raise ValueError(f"Expected `{name}` to have {grid.size} columns.")
+        return cls(s_grid, z_grid, axial, dx, dy, min(k_near, axial.n_particles), min_fraction)
+
+    @classmethod
+    def from_calibration(
+        cls,
+        cal: Any,
+        *,
+        kind: str,
+        n_terms: int = 400,
+        n_s: int = 241,
+        z_step_nm: float = 25.0,
+        k_near: int = 6,
+        min_fraction: float = 0.5,
+    ) -> WidefieldModel:
+        """Tabulate a :class:`~latentz.calibrate.calibration.Calibration`'s kept particles."""
+        kept = cal.kept
+        inverse = cal.local.shapes[cal.shape].inverse
+        lo, hi = np.nanmin(inverse.domain[kept, 0]), np.nanmax(inverse.domain[kept, 1])
+        s_grid = np.linspace(lo, hi, check_int("n_s", n_s, minimum=2))
+        z_table = np.stack([cal.local_z(s)[kept] for s in s_grid], axis=1)
+        z_lo, z_hi = np.nanmin(z_table), np.nanmax(z_table)
+        step = check_positive("z_step_nm", z_step_nm)
+        z_grid = np.linspace(z_lo, z_hi, max(2, int(np.ceil((z_hi - z_lo) / step)) + 1))
+        deltas = [cal.local_delta(z) for z in z_grid]
+        dx_t = np.stack([d[0][kept] for d in deltas], axis=1)
+        dy_t = np.stack([d[1][kept] for d in deltas], axis=1)
+        x, y = cal.positions[kept].T
+        return cls.from_tables(
+            x,
+            y,
+            s_grid,
+            z_table,
+            z_grid,
+            dx_t,
+            dy_t,
+            kind=kind,
+            field_shape=cal.camera.shape,
+            n_terms=n_terms,
+            k_near=k_near,
+            min_fraction=min_fraction,
+        )
+
+    @property
+    def s_range(self) -> tuple[float, float]:
+        """Smallest and largest shape value any particle covers."""
+        return float(self.s_grid[0]), float(self.s_grid[-1])
+
+    def coverage(self, x_px: Any, y_px: Any, s: Any) -> np.ndarray:
+        """Whether enough nearby particles cover each spot's shape value (bool per spot)."""
+        x, y, s = (np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (x_px, y_px, s))
+        j, _, inside = _bracket(self.s_grid, s)
+        ok = inside & np.isfinite(x) & np.isfinite(y)
+        tree = cKDTree(np.column_stack([self.axial.x_px, self.axial.y_px]))
+        pts = np.column_stack([np.where(ok, x, 0.0), np.where(ok, y, 0.0)])
+        _, near = tree.query(pts, k=self.k_near)
+        near = near.reshape(x.size, -1)
+        valid = self.axial.valid
+        covers = valid[near, j[:, None]] & valid[near, j[:, None] + 1]
+        return ok & (covers.mean(axis=1) >= self.min_fraction)
+
+    def _columns(self, model, grid, x, y, v, design):
+        j, t, inside = _bracket(grid, v)
+        pair = model(x, y, columns=np.column_stack([j, j + 1]), design=design)
+        return np.where(inside, pair[:, 0] * (1 - t) + pair[:, 1] * t, np.nan)
+
+    def __call__(
+        self, x_px: Any, y_px: Any, s: Any, *, iterations: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """z (nm), Δx', Δy' (pixels) and in_range for spots at apparent (x', y') with shape s.
+
+        ``iterations`` > 0 re-evaluates z at the laterally corrected position (x' − Δx',
+        y' − Δy') that many times (Supp. Note 1).
+        """
+        x = np.atleast_1d(np.asarray(x_px, dtype=np.float64))
+        y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        check_int("iterations", iterations, minimum=0)
+        in_range = self.coverage(x, y, s)
+        xq, yq = np.where(in_range, x, np.nan), np.where(in_range, y, np.nan)
+        for it in range(iterations + 1):
+            design = self._design(xq, yq)
+            z = self._columns(self.axial, self.s_grid, xq, yq, s, design)
+            if it:
+                design = self._design(x, y)
+            dx = self._columns(self.dx, self.z_grid_nm, x, y, z, design)
+            dy = self._columns(self.dy, self.z_grid_nm, x, y, z, design)
+            xq, yq = x - dx, y - dy
+        in_range &= np.isfinite(z) & np.isfinite(dx) & np.isfinite(dy)
+        nan = np.where(in_range, 0.0, np.nan)
+        return z + nan, dx + nan, dy + nan, in_range
+
+    def _design(self, x: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+        if self.axial.kind != "zernike":
+            return None
+        p = max(int(np.max(m.n_terms_effective, initial=1)) for m in (self.axial, self.dx, self.dy))
+        ok = np.isfinite(x) & np.isfinite(y)
+        d = np.full((x.size, p), np.nan)
+        d[ok] = zernike_design(x[ok], y[ok], field_shape=self.axial.field_shape, n_terms=p)
+        return d
