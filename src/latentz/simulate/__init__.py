@@ -17,6 +17,7 @@ from latentz.simulate.datasets import (
     stage_origins,
 )
 from latentz.simulate.figures import psf_gallery, save_psf_gallery
+from latentz.simulate.gear import GearMovie, gear_movie
 from latentz.simulate.optics import Optics, noll_to_nm, zernike
 
 __all__ = [
@@ -24,10 +25,12 @@ __all__ = [
     "ApertureArrayDataset",
     "CalibrationDataset",
     "DATASET_KINDS",
+    "GearMovie",
     "MODE_NAMES",
     "Optics",
     "aperture_array",
     "calibration_dataset",
+    "gear_movie",
     "noll_to_nm",
     "psf_gallery",
     "render_spots",

@@ -29,6 +29,7 @@ import numpy as np
 import scipy.fft
 
 from latentz._shared.validate import check_array, check_int, check_positive
+from latentz.simulate._kernels import mft_power
 
 __all__ = ["Optics", "noll_to_nm", "zernike"]
 
@@ -305,9 +306,9 @@ class Optics:
             shift[:, 0, None, None] * f[None, None, :] + shift[:, 1, None, None] * f[None, :, None]
         )
         field = (pupil["aperture"][None] * np.exp(1j * phase)).astype(np.complex64)
-        amp = ay[None] @ field @ ax[None]  # (n, n_y, n_x)
-        power = np.sum(pupil["aperture"] ** 2)
-        intensity = (amp.real**2 + amp.imag**2) * np.float32(pupil["step"] ** 2 / power)
+        intensity = np.empty((field.shape[0], n_y, n_x), dtype=np.float32)
+        mft_power(field, ay, ax, intensity)  # |ay @ field @ ax|²
+        intensity *= np.float32(pupil["step"] ** 2 / np.sum(pupil["aperture"] ** 2))
         # intensity: probability density per nm²
         # Exact pixel-box integration (and sphere projection) in the Fourier domain.
         fy = np.fft.fftfreq(n_y, d=sub)[:, None]
