@@ -130,13 +130,19 @@ class WidefieldModel:
         cal: Any,
         *,
         kind: str,
+        field_shape: tuple[int, int],
         n_terms: int = 400,
         n_s: int = 241,
         z_step_nm: float = 25.0,
         k_near: int = 6,
         min_fraction: float = 0.5,
     ) -> WidefieldModel:
-        """Tabulate a :class:`~latentz.calibrate.calibration.Calibration`'s kept particles."""
+        """Tabulate a :class:`~latentz.calibrate.calibration.Calibration`'s kept particles.
+
+        ``field_shape`` is ``(H, W)`` of the whole field in pixels (stage positions included);
+        the s grid spans the kept particles' ranges in ``n_s`` values, the z grid the resulting
+        heights in steps of at most ``z_step_nm``; other options as in :meth:`from_tables`.
+        """
         kept = cal.kept
         inverse = cal.local.shapes[cal.shape].inverse
         lo, hi = np.nanmin(inverse.domain[kept, 0]), np.nanmax(inverse.domain[kept, 1])
@@ -158,7 +164,7 @@ class WidefieldModel:
             dx_t,
             dy_t,
             kind=kind,
-            field_shape=cal.camera.shape,
+            field_shape=field_shape,
             n_terms=n_terms,
             k_near=k_near,
             min_fraction=min_fraction,
