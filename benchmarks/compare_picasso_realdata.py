@@ -310,7 +310,8 @@ def main():
         "Calibration.apply.",
         f"Matching: nearest true bead in the same plane within {MATCH_NM:.0f} nm laterally, "
         "one localization per bead and plane; no offset removed in the headline RMSEs. "
-        "Wall time on this machine, same run, 2 threads.",
+        "Wall time on this machine, same run, 2 threads, second (warm) run of each tool so that "
+        "numba compilation is not counted.",
         "z origin: both tools put z = 0 where the spot is round (Picasso's calibrate_z recentres "
         "its polynomials on the wx = wy crossing), which in this stack is near piezo +90…100 nm, "
         "not at the CSV's z = 0; hence the large z bias of both, also on the calibration beads "
@@ -324,6 +325,7 @@ def main():
         ("Picasso (gausslq + Huang 3D)", run_picasso, g),
         ("latentz (shape='auto')", run_latentz, camera),
     ):
+        runner(stack, truth, arg, z_nm)  # warm-up: numba JIT / caches, not timed
         locs, cal_locs, t_cal, t_loc = runner(stack, truth, arg, z_nm)
         m = evaluate(locs, truth, TEST_BEADS)
         mc = evaluate(cal_locs, truth, CAL_BEADS)
