@@ -244,19 +244,19 @@ def _latentz_out(res):
 
 def table(results):
     keys = [
-        ("z RMSE, |z| ≤ 600 nm (nm)", "lim", "z_rmse", "{:.1f}"),
-        ("lateral RMSE, |z| ≤ 600 nm (nm)", "lim", "xy_rmse", "{:.1f}"),
+        ("z RMSE, abs(z) ≤ 600 nm (nm)", "lim", "z_rmse", "{:.1f}"),
+        ("lateral RMSE, abs(z) ≤ 600 nm (nm)", "lim", "xy_rmse", "{:.1f}"),
         ("  x / y RMSE (nm)", "lim", ("x_rmse", "y_rmse"), "{:.1f} / {:.1f}"),
         ("  lateral RMSE, mean offset removed (nm)", "lim", "xy_rmse_offset_removed", "{:.1f}"),
         ("  mean dx / dy (nm)", "lim", ("dx_mean", "dy_mean"), "{:+.1f} / {:+.1f}"),
-        ("z bias, |z| ≤ 600 nm (nm)", "lim", "z_bias", "{:+.1f}"),
+        ("z bias, abs(z) ≤ 600 nm (nm)", "lim", "z_bias", "{:+.1f}"),
         ("  z RMSE after removing the mean z bias (nm)", "lim", "z_sd", "{:.1f}"),
-        ("planes localized, |z| ≤ 600 nm", "lim", "found", "{:.0%}"),
+        ("planes localized, abs(z) ≤ 600 nm", "lim", "found", "{:.0%}"),
         ("z RMSE, full range (nm)", "all", "z_rmse", "{:.1f}"),
         ("lateral RMSE, full range (nm)", "all", "xy_rmse", "{:.1f}"),
         ("planes localized, full range", "all", "found", "{:.0%}"),
         (
-            "self-check: z RMSE on calibration beads 0–2, |z| ≤ 600 nm (nm)",
+            "self-check: z RMSE on calibration beads 0–2, abs(z) ≤ 600 nm (nm)",
             "self",
             "z_rmse",
             "{:.1f}",
@@ -337,7 +337,7 @@ def main():
             t_loc=t_loc,
         )
         figdata[name] = m
-    text = "\n".join(header) + table(results) + "\n"
+    text = "\n\n".join(header[:-1]) + "\n\n" + table(results) + "\n"
     print(text)
     OUT.mkdir(parents=True, exist_ok=True)
     write_text_atomic(OUT / "compare_picasso_realdata.md", text)
