@@ -47,7 +47,10 @@ CAL_BEADS = (0, 1, 2)
 TEST_BEADS = (3, 4, 5)
 MATCH_NM = 300.0
 Z_LIMIT_NM = 600.0
-BOX = 11  # Picasso box and latentz ROI side, pixels
+BOX = 11  # Picasso box side, pixels
+# latentz ROI side, pixels: the same ROI for calibration and localization (the fitted widths and
+# so the shape parameter depend on it); defocused beads here reach ~10 px, so 31 px holds them.
+LZ_ROI = 31
 MIN_NG = 2000  # Picasso minimum net gradient (ADU); beads are far above, background far below
 
 
@@ -222,10 +225,18 @@ def run_latentz(stack, truth, camera, z_nm):
     t = truth[truth.plane == truth.plane.min()]
     pos = [[(r.x_px, r.y_px) for r in t[t.bead.isin(CAL_BEADS)].itertuples()]]
     t0 = time.perf_counter()
-    cal = calibrate(stack, z_nm, camera=camera, shape="auto", field_model="nearest", positions=pos)
+    cal = calibrate(
+        stack,
+        z_nm,
+        camera=camera,
+        shape="auto",
+        field_model="nearest",
+        positions=pos,
+        roi_size=LZ_ROI,
+    )
     t_cal = time.perf_counter() - t0
     t0 = time.perf_counter()
-    all_spots = localize(stack, camera=camera, roi_size=BOX, scheduler="threads")
+    all_spots = localize(stack, camera=camera, roi_size=LZ_ROI, scheduler="threads")
     out = _latentz_out(cal.apply(near(all_spots, truth, TEST_BEADS)))
     t_loc = time.perf_counter() - t0
     return out, _latentz_out(cal.apply(near(all_spots, truth, CAL_BEADS))), t_cal, t_loc
@@ -306,7 +317,7 @@ def main():
         "gausslq fit, calibrate_z (Huang 2008 polynomials, step 10 nm, magnification_factor 1.0 "
         "— simulated stack, no refractive-index mismatch), zfit(filter=0). Picasso's z axis "
         "puts the first frame at +z, so its z is negated. latentz: calibrate(shape='auto', "
-        f"field_model='nearest', positions=beads 0–2), localize(roi_size={BOX}), "
+        f"field_model='nearest', positions=beads 0–2), calibrate and localize(roi_size={LZ_ROI}), "
         "Calibration.apply.",
         f"Matching: nearest true bead in the same plane within {MATCH_NM:.0f} nm laterally, "
         "one localization per bead and plane; no offset removed in the headline RMSEs. "
