@@ -183,7 +183,9 @@ def calibrate(
     type=click.Choice(["parquet", "csv", "picasso"]),
     help="Output format (default from the suffix).",
 )
-@click.option("--roi-size", default=11, show_default=True, help="ROI side, pixels (odd).")
+@click.option(
+    "--roi-size", type=int, default=None, help="ROI side, pixels (odd); default: the calibration's."
+)
 @click.option("--threshold", type=float, help="Detection threshold, background-noise units.")
 @click.option("--chunk-frames", default=200, show_default=True, help="Frames per chunk.")
 @click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")

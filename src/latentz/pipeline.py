@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from latentz import __version__
@@ -59,7 +60,7 @@ def localize_movies(
     out: str | os.PathLike,
     *,
     fmt: str | None = None,
-    roi_size: int = 11,
+    roi_size: int | None = None,
     threshold: float | None = None,
     chunk_frames: int = 200,
     resume: bool = False,
@@ -85,6 +86,8 @@ def localize_movies(
     if fmt is None and target.suffix.lower() == ".hdf5":
         fmt = "picasso"
     cal = Calibration.load(calibration)
+    if roi_size is None:  # the fitted widths, hence the shape value, depend on the ROI
+        roi_size = cal.options.get("roi_size") or 15
     stacks = [read_stack(m) for m in movies]
     if len({s.shape[1:] for s in stacks}) != 1:
         raise ValueError("Every movie must have the same frame size.")
@@ -94,8 +97,10 @@ def localize_movies(
     meta = provenance({"movies": movies, "calibration": calibration}, options)
 
     def process(start: int, stop: int) -> pd.DataFrame:
+        # read the chunk here (the file is open in this process), fit it where `scheduler` says
+        block = np.asarray(frames[start:stop].compute(scheduler="threads"))
         spots = localize(
-            frames[start:stop],
+            block,
             camera=cal.camera,
             roi_size=roi_size,
             threshold=threshold,

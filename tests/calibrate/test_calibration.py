@@ -112,8 +112,8 @@ def test_bad_input(calibrated):
     flat = np.random.default_rng(1).poisson(100.0, (30, 40, 40)).astype(np.uint16)
     with pytest.raises(ValueError, match="No particles found"):
         calibrate(flat, z, camera=Camera(offset=0.0), field_model="nearest")
-    with pytest.raises(NotImplementedError, match="nearest"):
-        calibrate_traces(traces, field_model="zernike")
+    with pytest.raises(ValueError, match="field_model"):
+        calibrate_traces(traces, field_model="spline")
     with pytest.raises(TypeError, match="Unknown calibration option"):
         calibrate_traces(traces, field_model="nearest", colour="red")
     with pytest.raises(ValueError, match="shape"):

@@ -106,6 +106,29 @@ class Calibration:
         return self._cache["positions"]
 
     @property
+    def field_model(self) -> str:
+        """How models are carried across the field: "zernike", "natural" or "nearest"."""
+        return self.options.get("field_model", "nearest")
+
+    @property
+    def widefield(self):
+        """The widefield models (:class:`~latentz.calibrate.widefield.WidefieldModel`) of the
+        kept particles, tabulated on first use from the local models (so a saved and loaded
+        calibration gives the same model); None for ``field_model="nearest"``."""
+        if self.field_model == "nearest":
+            return None
+        if "widefield" not in self._cache:
+            from latentz.calibrate.widefield import WidefieldModel
+
+            self._cache["widefield"] = WidefieldModel.from_calibration(
+                self,
+                kind=self.field_model,
+                field_shape=tuple(self.options["field_shape"]),
+                n_terms=self.options.get("n_terms", 400),
+            )
+        return self._cache["widefield"]
+
+    @property
     def kept(self) -> np.ndarray:
         """Indices of the calibration particles that were not culled."""
         return np.flatnonzero(~self.culled)
@@ -167,7 +190,13 @@ class Calibration:
     def apply(
         self, spots: pd.DataFrame, *, amplitude_reference: str = "calibration"
     ) -> pd.DataFrame:
-        """Localize spots in 3D (nearest calibration particle's local models).
+        """Localize spots in 3D with the widefield models (or the nearest particle's).
+
+        z comes from the field model of z(x', y'; s) at the spot's shape value s, and the
+        lateral correction from the field models of Δx', Δy' at that z (METHOD.md items
+        16–18); with ``field_model="nearest"``, from the nearest calibration particle's local
+        models. Uncertainties propagate the nearest particle's local model errors and, when the
+        spots carry them, their own Cramér–Rao errors.
 
         Parameters
         ----------
@@ -208,8 +237,20 @@ class Calibration:
             amplitude_ref=ref,
         )
         inverse = model.inverse[p]
-        in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
-        z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
+        widefield = self.widefield
+        if widefield is None:
+            in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
+            z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
+            shifts = None
+        else:  # field models of z(x', y'; s) and Δx', Δy'(x', y'; z); errors stay local
+            z, dx_w, dy_w, in_range = widefield(
+                np.where(located, cols["x"], np.nan),
+                np.where(located, cols["y"], np.nan),
+                s,
+                iterations=self.options.get("iterations", 0),
+            )
+            in_range &= located
+            shifts = {"x": dx_w, "y": dy_w}
         sigma_cal = _interp_rows(self.local.z_nm[p], model.sigma_z[p], z)
         m_used = np.sum(np.isfinite(model.sigma_z[p]), axis=1)
         model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(m_used, 1))
@@ -237,7 +278,7 @@ class Calibration:
             ("y", self.local.dy, self.local.sigma_dy),
         ):
             sub = delta[p]
-            shift = sub(zq)
+            shift = sub(zq) if shifts is None else shifts[axis]
             slope = sub.derivative()(zq)
             sigma_d = _interp_rows(self.local.z_nm[p], sig[p], z)
             m_d = np.sum(np.isfinite(sig[p]), axis=1)

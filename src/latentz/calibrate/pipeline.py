@@ -163,8 +163,21 @@ def calibrate(
         method=method,
         progress=progress,
     )
+    if "field_shape" not in options:
+        offsets = np.zeros((len(loaded), 2)) if stage_offsets_px is None else stage_offsets_px
+        offsets = np.asarray(offsets, dtype=np.float64).reshape(len(loaded), 2)
+        options["field_shape"] = (
+            int(max(o[1] + st.shape[1] for o, st in zip(offsets, loaded, strict=True))),
+            int(max(o[0] + st.shape[2] for o, st in zip(offsets, loaded, strict=True))),
+        )
     return calibrate_traces(
-        traces, camera=camera, shape=shape, field_model=field_model, n_terms=n_terms, **options
+        traces,
+        camera=camera,
+        shape=shape,
+        field_model=field_model,
+        n_terms=n_terms,
+        roi_size=roi_size,
+        **options,
     )
 
 
@@ -179,6 +192,10 @@ def calibrate_traces(
     cull: bool = True,
     cull_threshold: float = 6.0,
     neighbours: int = 8,
+    field_shape: tuple[int, int] | None = None,
+    roi_size: int | None = None,
+    iterations: int = 0,
+    sources: Sequence[str] | None = None,
     **options: Any,
 ) -> Calibration:
     """Calibrate from traces already fitted (see :func:`calibrate` for the parameters).
@@ -197,11 +214,6 @@ def calibrate_traces(
     n_terms = check_int("n_terms", n_terms, minimum=1)
     cull_threshold = check_positive("cull_threshold", cull_threshold)
     neighbours = check_int("neighbours", neighbours, minimum=1)
-    if field_model != "nearest":
-        raise NotImplementedError(
-            f"field_model={field_model!r} needs the widefield calibration stage, which is not "
-            "integrated in this version; use field_model='nearest'."
-        )
     if len(traces) == 0:
         raise ValueError("No calibration particles: the traces are empty.")
     theta = None
@@ -242,6 +254,10 @@ def calibrate_traces(
         "cull": cull,
         "cull_threshold": cull_threshold,
         "neighbours": neighbours,
+        "field_shape": _field_shape(traces, field_shape),
+        "roi_size": roi_size,
+        "iterations": check_int("iterations", iterations, minimum=0),
+        "sources": [str(x) for x in sources] if sources is not None else [],
         **{k: getattr(local_options, k) for k in LocalOptions.__dataclass_fields__},
     }
     return Calibration(
@@ -254,6 +270,15 @@ def calibrate_traces(
         scores=scores,
         options=options_used,
     )
+
+
+def _field_shape(traces: Traces, given: Any) -> list[int]:
+    """(H, W) of the whole field in pixels: as given, else the particles' extent plus a margin."""
+    if given is not None:
+        return [check_int("field_shape", int(v), minimum=1) for v in given]
+    pos = traces.position()
+    extent = np.nanmax(pos, axis=0) if len(pos) else np.zeros(2)
+    return [int(np.ceil(extent[1])) + 8, int(np.ceil(extent[0])) + 8]
 
 
 def _tilt_plane(substrate_nm: np.ndarray, z_f: np.ndarray, use: np.ndarray, tilt: bool):
