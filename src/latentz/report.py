@@ -30,20 +30,25 @@ class Section:
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
 
 
+def _png(fig, dpi: int) -> bytes:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    return buffer.getvalue()
+
+
 def figure_png(fig, *, dpi: int = 110) -> bytes:
     """Render a matplotlib figure to PNG bytes and close it."""
     import matplotlib.pyplot as plt
 
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    png = _png(fig, dpi)
     plt.close(fig)
-    return buffer.getvalue()
+    return png
 
 
 def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> Path:
-    """Save a matplotlib figure as PNG atomically and close it."""
+    """Save a matplotlib figure as a PNG file atomically (the figure stays open)."""
     target = Path(path)
-    write_bytes_atomic(target, figure_png(fig, dpi=dpi))
+    write_bytes_atomic(target, _png(fig, dpi))
     return target
 
 

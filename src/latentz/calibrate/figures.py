@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from latentz._shared.atomic import atomic_path
 from latentz._shared.validate import check_int
 from latentz.calibrate.calibration import PAPER_SHAPES, Calibration
+from latentz.report import save_figure
 
 __all__ = ["figure2", "figure3", "figure_focus"]
 
@@ -28,8 +28,7 @@ _MARKERS = {"rho": "^", "rho_w": "s", "rho_A": "o", "auto": "D", "auto_A": "v"}
 
 def _save(fig: Any, path: str | os.PathLike | None) -> None:
     if path is not None:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=110)
+        save_figure(fig, path)
 
 
 def figure2(

@@ -7,16 +7,13 @@ atomically. Angles are plotted in mrad.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from latentz._shared.atomic import atomic_path
-from latentz._shared.validate import check_int
 from latentz.motion import analyses
 from latentz.motion.analyses import OutOfPlanePlay
+from latentz.report import save_figure
 
 __all__ = [
     "motion_figures",
@@ -37,13 +34,6 @@ _LABELS = {
     "dy_nm": ("Δy", "nm", 1.0),
     "dz_nm": ("Δz", "nm", 1.0),
 }
-
-
-def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: int = 120) -> None:
-    """Write ``fig`` as a PNG at ``path`` atomically."""
-    dpi = check_int("dpi", dpi, minimum=1)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi)
 
 
 def _series_with_histogram(fig, gs, row, col, x, y, label, sigma=None):
