@@ -1,0 +1,133 @@
+"""Load: `localize` on a movie with about 10x the usual emitter density (many overlaps) finishes,
+flags the overlaps it resolves, and keeps its memory within a small multiple of the movie."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
+
+from latentz.detect import detect
+from latentz.localize import localize
+
+N_FRAMES, SHAPE, N_SPOTS = (
+    5,
+    (256, 256),
+    300,
+)  # ~1 spot per 220 px; the gear movies have ~1 per 2000
+SIGMA, AMPLITUDE, BACKGROUND = 1.5, 3000.0, 100.0
+ROI = 11
+HALF = ROI // 2
+
+
+def dense_movie(seed=3):
+    """Poisson frames of eq. 1 spots (round, width SIGMA) at uniform random positions."""
+    rng = np.random.default_rng(seed)
+    frames = np.empty((N_FRAMES, *SHAPE))
+    truth = []
+    for t in range(N_FRAMES):
+        xy = rng.uniform(3, np.array(SHAPE[::-1]) - 4, (N_SPOTS, 2))
+        mu = np.full(SHAPE, BACKGROUND)
+        for x, y in xy:
+            r0, c0 = int(y) - 8, int(x) - 8
+            rows, cols = np.ogrid[
+                max(r0, 0) : min(r0 + 18, SHAPE[0]), max(c0, 0) : min(c0 + 18, SHAPE[1])
+            ]
+            mu[rows, cols] += AMPLITUDE * np.exp(
+                -((cols - x) ** 2 + (rows - y) ** 2) / (2 * SIGMA**2)
+            )
+        frames[t] = rng.poisson(mu)
+        truth.append(xy)
+    return frames, truth
+
+
+@pytest.fixture(scope="module")
+def dense():
+    frames, truth = dense_movie()
+    localize(frames[:1], roi_size=ROI)  # compile and warm caches outside the measurement
+    tracemalloc.start()
+    try:
+        locs = localize(frames, roi_size=ROI)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return frames, truth, locs, peak
+
+
+def test_dense_movie_finishes_with_most_spots_fitted(dense):
+    frames, _, locs, _ = dense
+    assert set(locs["frame"]) == set(range(N_FRAMES))
+    # merged pairs make fewer detections than spots, but most frames' spots are found
+    assert 0.6 * N_SPOTS * N_FRAMES < len(locs) <= N_SPOTS * N_FRAMES
+    assert locs["converged"].mean() > 0.9
+    finite = locs[locs["converged"]]
+    assert np.isfinite(finite[["x", "y", "amplitude", "wx", "wy"]].to_numpy()).all()
+
+
+def test_memory_stays_within_a_small_multiple_of_the_movie(dense):
+    frames, _, _, peak = dense
+    # One chunk of float64 frames, a few band-pass temporaries of one frame, and the ROIs
+    # (n x ROI^2 float64, about half the movie here): 8x the float64 movie is generous, while
+    # anything quadratic in the spots (n^2 or n x frame) would exceed it 10-fold.
+    bound = 8 * frames.size * 8
+    assert peak < bound, f"peak {peak / 1e6:.1f} MB, bound {bound / 1e6:.1f} MB"
+
+
+def test_close_pair_is_every_detection_with_another_inside_its_roi(dense):
+    frames, _, locs, _ = dense
+    found = detect(frames, roi_size=ROI)
+    np.testing.assert_array_equal(found["close_pair"].to_numpy(), locs["close_pair"].to_numpy())
+    for t in range(N_FRAMES):
+        peaks = found.loc[found["frame"] == t, ["row", "col"]].to_numpy()
+        distance = cdist(peaks, peaks, "chebyshev")
+        np.fill_diagonal(distance, np.inf)
+        expected = distance.min(axis=1) <= HALF
+        flags = found.loc[found["frame"] == t, "close_pair"].to_numpy()
+        np.testing.assert_array_equal(flags, expected)
+    assert locs["close_pair"].mean() > 0.05  # a substantial fraction at this density
+
+
+def resolved_close_pairs(found, truth, t):
+    """True spots with a true neighbour within HALF px, both found as separate detections."""
+    frame = found[found["frame"] == t].reset_index(drop=True)
+    peaks = frame[["col", "row"]].to_numpy(float)
+    distance, nearest = cKDTree(peaks).query(truth[t])
+    pairs = cKDTree(truth[t]).query_pairs(HALF, p=np.inf, output_type="ndarray")
+    separate = (
+        (distance[pairs[:, 0]] <= 1.5)
+        & (distance[pairs[:, 1]] <= 1.5)
+        & (nearest[pairs[:, 0]] != nearest[pairs[:, 1]])
+    )
+    return frame, nearest[pairs[separate]]
+
+
+def test_every_resolved_overlap_is_flagged(dense):
+    frames, truth, _, _ = dense
+    found = detect(frames, roi_size=ROI)
+    n_pairs = 0
+    for t in range(N_FRAMES):
+        frame, members = resolved_close_pairs(found, truth, t)
+        # the detected peaks may be 1 px further apart than the true centres
+        peaks = frame[["row", "col"]].to_numpy()
+        gap = np.abs(peaks[members[:, 0]] - peaks[members[:, 1]]).max(axis=1)
+        inside = gap <= HALF
+        assert frame["close_pair"].to_numpy()[members[inside]].all()
+        n_pairs += inside.sum()
+    assert n_pairs > 0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limitation: two spots closer than ~2.8 sigma merge into one band-passed peak, "
+    "whose single detection is not flagged close_pair (its fit is wider instead)",
+)
+def test_unresolved_overlaps_are_flagged(dense):
+    frames, truth, locs, _ = dense
+    found = detect(frames, roi_size=ROI)
+    for t in range(N_FRAMES):
+        frame = found[found["frame"] == t]
+        distance, nearest = cKDTree(frame[["col", "row"]].to_numpy(float)).query(truth[t])
+        pairs = cKDTree(truth[t]).query_pairs(2.5, p=np.inf, output_type="ndarray")
+        both = (distance[pairs[:, 0]] <= 2.5) & (nearest[pairs[:, 0]] == nearest[pairs[:, 1]])
+        assert frame["close_pair"].to_numpy()[nearest[pairs[both, 0]]].all()
