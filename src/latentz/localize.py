@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
 from latentz.detect import detect_arrays
@@ -142,6 +143,8 @@ def localize(
         raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
     check_choice("method", method, METHODS)
     roi_size = check_int("roi_size", roi_size, minimum=3)
+    if camera is not None:  # an offset above most pixels means the wrong camera settings
+        check_offset(camera.offset, float(np.median(np.asarray(movie[0][::4, ::4]))))
     if chunk_frames is None:
         chunk_frames = max(1, _CHUNK_BYTES // (8 * movie.shape[1] * movie.shape[2]))
     chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)

@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz._shared.sanity import check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibrate.local import LocalModels, row_mean
 from latentz.calibrate.shape import shape_sigma, shape_value, uses_amplitude
@@ -129,6 +130,12 @@ class Calibration:
         return self._cache["widefield"]
 
     @property
+    def width_range_px(self) -> tuple[float, float]:
+        """Smallest and largest fitted width (wx, wy, pixels) of the kept particles' traces."""
+        widths = np.stack([self.traces["wx"][self.kept], self.traces["wy"][self.kept]])
+        return float(np.nanmin(widths)), float(np.nanmax(widths))
+
+    @property
     def kept(self) -> np.ndarray:
         """Indices of the calibration particles that were not culled."""
         return np.flatnonzero(~self.culled)
@@ -216,6 +223,7 @@ class Calibration:
             calibrated range, z_nm and the corrected positions are NaN and in_range is False.
         """
         check_columns("spots", spots, SPOT_COLUMNS)
+        check_widths(spots[["wx", "wy"]].to_numpy(dtype=np.float64), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         shape = self.shape
         cols = {c: spots[c].to_numpy(dtype=np.float64) for c in SPOT_COLUMNS}
