@@ -6,6 +6,7 @@ traceback, and writes its outputs atomically.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -14,6 +15,12 @@ import click
 from latentz import __version__
 
 EXIT_BAD_INPUT = 2
+EXIT_INTERNAL = 1
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 class _Group(click.Group):
@@ -25,9 +32,17 @@ class _Group(click.Group):
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except (ValueError, TypeError, FileNotFoundError, OSError, KeyError) as exc:
-            message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            click.echo(f"latentz: error: {message}", err=True)
+            click.echo(f"latentz: error: {_first_line(exc)}", err=True)
             sys.exit(EXIT_BAD_INPUT)
+        except Exception as exc:  # noqa: BLE001 - a bug: one line, the traceback on request
+            if os.environ.get("LATENTZ_DEBUG"):
+                raise
+            click.echo(
+                f"latentz: internal error ({type(exc).__name__}: {_first_line(exc)}); "
+                "rerun with LATENTZ_DEBUG=1 for the traceback and please report it",
+                err=True,
+            )
+            sys.exit(EXIT_INTERNAL)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

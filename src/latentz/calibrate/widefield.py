@@ -148,6 +148,13 @@ class WidefieldModel:
         lo, hi = np.nanmin(inverse.domain[kept, 0]), np.nanmax(inverse.domain[kept, 1])
         s_grid = np.linspace(lo, hi, check_int("n_s", n_s, minimum=2))
         z_table = np.stack([cal.local_z(s)[kept] for s in s_grid], axis=1)
+        # an inverse polynomial is only trusted inside the z range its particle was imaged over
+        z_span = cal.local.z_nm[kept]
+        with np.errstate(invalid="ignore"):
+            outside = (z_table < np.nanmin(z_span, axis=1, keepdims=True)) | (
+                z_table > np.nanmax(z_span, axis=1, keepdims=True)
+            )
+        z_table[outside] = np.nan
         z_lo, z_hi = np.nanmin(z_table), np.nanmax(z_table)
         step = check_positive("z_step_nm", z_step_nm)
         z_grid = np.linspace(z_lo, z_hi, max(2, int(np.ceil((z_hi - z_lo) / step)) + 1))
