@@ -127,3 +127,31 @@ def test_bad_options():
         )
     with pytest.raises(ValueError, match="iterations"):
         _model("nearest")(np.array([1.0]), np.array([1.0]), np.array([0.0]), iterations=-1)
+
+
+def test_spots_beyond_the_field_are_out_of_range_not_errors():
+    from latentz.calibrate.widefield import WidefieldModel
+
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0, 63, 80), rng.uniform(0, 63, 80)
+    s_grid = np.linspace(-1, 1, 21)
+    z_grid = np.linspace(-1000, 1000, 21)
+    z_table = np.tile(1000 * s_grid, (80, 1))
+    zeros = np.zeros((80, 21))
+    model = WidefieldModel.from_tables(
+        x,
+        y,
+        s_grid,
+        z_table,
+        z_grid,
+        zeros,
+        zeros,
+        kind="zernike",
+        field_shape=(64, 64),
+        n_terms=6,
+    )
+    z, dx, dy, ok = model(
+        np.array([10.0, 64.2, -3.0]), np.array([10.0, 10.0, 5.0]), np.array([0.5, 0.5, 0.5])
+    )
+    np.testing.assert_allclose(z[0], 500.0, atol=1e-6)
+    assert ok.tolist() == [True, False, False] and np.isnan(z[1:]).all()

@@ -212,6 +212,10 @@ class WidefieldModel:
         y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
         s = np.atleast_1d(np.asarray(s, dtype=np.float64))
         check_int("iterations", iterations, minimum=0)
+        h, w = self.axial.field_shape
+        with np.errstate(invalid="ignore"):  # spots beyond the calibrated field: out of range
+            beyond = (x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5)
+        x, y = np.where(beyond, np.nan, x), np.where(beyond, np.nan, y)
         in_range = self.coverage(x, y, s)
         xq, yq = np.where(in_range, x, np.nan), np.where(in_range, y, np.nan)
         for it in range(iterations + 1):
