@@ -20,6 +20,7 @@ import pytest
 import tifffile
 from click.testing import CliRunner
 
+from latentz.calibrate import Calibration
 from latentz.cli import main
 from latentz.io import read_table
 
@@ -31,7 +32,7 @@ def cli(*args):
 
 
 def run_and_kill(args, folder, moment):
-    """Start ``args``; SIGKILL it after ``moment`` seconds or when a .part appears in ``folder``."""
+    """Run ``args``; SIGKILL it after ``moment`` s or once a .part appears in ``folder``."""
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     start = time.monotonic()
     while proc.poll() is None and time.monotonic() - start < 60:
@@ -41,11 +42,9 @@ def run_and_kill(args, folder, moment):
         elif time.monotonic() - start >= moment:
             break
         time.sleep(0.002)
-    finished = proc.poll() == 0
     if proc.poll() is None:
         os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    return finished
+    assert proc.wait() in (0, -signal.SIGKILL), f"{args} failed with status {proc.returncode}"
 
 
 def assert_table_old_or_new(path, old_bytes, new_table):
@@ -123,6 +122,21 @@ def track_args(localize_args, tmp_path_factory):
 def test_killed_track_keeps_the_previous_table(track_args, tmp_path, moment):
     base, reference = track_args
     check_interrupted(tmp_path, "motion.csv", base, TRACK_CHANGE, reference, moment)
+
+
+@pytest.mark.parametrize("moment", (1.5, "part"))
+def test_killed_calibrate_keeps_the_previous_calibration(
+    inputs, small_microscope, tmp_path, moment
+):
+    _, cal = inputs
+    src = small_microscope.folder
+    out = tmp_path / "cal.h5"
+    out.write_bytes(cal.read_bytes())
+    old = Calibration.load(out)
+    args = ["calibrate", src / "stack.tif", "--z-file", src / "z.txt", "--field-model", "nearest"]
+    run_and_kill(cli(*args, "--shape", "rho", "--quiet", "--out", out), tmp_path, moment)
+    again = Calibration.load(out)  # old or new, it is complete
+    pd.testing.assert_index_equal(again.scores.columns, old.scores.columns)
 
 
 def readable(path):
