@@ -24,7 +24,7 @@ from latentz.calibrate import Calibration
 from latentz.cli import main
 from latentz.io import read_table
 
-MOMENTS = (0.3, 1.5, "part")
+MOMENTS = (0.3, 1.5, "*.part")
 
 
 def cli(*args):
@@ -32,12 +32,12 @@ def cli(*args):
 
 
 def run_and_kill(args, folder, moment):
-    """Run ``args``; SIGKILL it after ``moment`` s or once a .part appears in ``folder``."""
+    """Run ``args``; SIGKILL it after ``moment`` s or once a file matching it is in ``folder``."""
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     start = time.monotonic()
     while proc.poll() is None and time.monotonic() - start < 60:
-        if moment == "part":
-            if any(p.name.endswith(".part") for p in folder.rglob("*")):
+        if isinstance(moment, str):
+            if any(folder.rglob(moment)):
                 break
         elif time.monotonic() - start >= moment:
             break
@@ -97,7 +97,7 @@ def localize_args(inputs, tmp_path_factory):
     return base, old_and_new(folder, "locs.parquet", base, LOCALIZE_CHANGE)
 
 
-@pytest.mark.parametrize("moment", MOMENTS)
+@pytest.mark.parametrize("moment", (*MOMENTS, ".locs.parquet.*.part"))
 def test_killed_localize_keeps_the_previous_table(localize_args, tmp_path, moment):
     base, reference = localize_args
     check_interrupted(tmp_path, "locs.parquet", base, LOCALIZE_CHANGE, reference, moment)
@@ -124,7 +124,7 @@ def test_killed_track_keeps_the_previous_table(track_args, tmp_path, moment):
     check_interrupted(tmp_path, "motion.csv", base, TRACK_CHANGE, reference, moment)
 
 
-@pytest.mark.parametrize("moment", (1.5, "part"))
+@pytest.mark.parametrize("moment", (1.5, "*.part"))
 def test_killed_calibrate_keeps_the_previous_calibration(
     inputs, small_microscope, tmp_path, moment
 ):
@@ -154,7 +154,7 @@ def simulated(tmp_path_factory):
     return {p.name: p.read_bytes() for p in folder.iterdir()}
 
 
-@pytest.mark.parametrize("moment", (1.5, "part"))
+@pytest.mark.parametrize("moment", (1.5, "*.part"))
 def test_killed_simulate_keeps_complete_files(simulated, tmp_path, moment):
     folder = tmp_path / "out"
     folder.mkdir()
@@ -178,5 +178,5 @@ def test_killed_simulate_keeps_complete_files(simulated, tmp_path, moment):
 def test_kill_during_a_write_leaves_no_part_file(track_args, tmp_path):
     base, (old, _) = track_args
     (tmp_path / "motion.csv").write_bytes(old)
-    run_and_kill(cli(*base, *TRACK_CHANGE, "--out", tmp_path / "motion.csv"), tmp_path, "part")
+    run_and_kill(cli(*base, *TRACK_CHANGE, "--out", tmp_path / "motion.csv"), tmp_path, "*.part")
     assert not [p.name for p in tmp_path.rglob("*.part")]
