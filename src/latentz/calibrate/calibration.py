@@ -129,6 +129,19 @@ class Calibration:
             )
         return self._cache["widefield"]
 
+    def evaluate(self, **options: Any) -> pd.DataFrame:
+        """Widefield errors against z for each field model (paper Fig. 5); see
+        :func:`latentz.calibrate.evaluate.evaluate`."""
+        from latentz.calibrate.evaluate import evaluate
+
+        return evaluate(self, **options)
+
+    def evaluate_figures(self) -> dict[str, Any]:
+        """Figs. 4 and 5 as matplotlib figures, by name."""
+        from latentz.calibrate.evaluate import evaluate_figures
+
+        return evaluate_figures(self)
+
     @property
     def width_range_px(self) -> tuple[float, float]:
         """Smallest and largest fitted width (wx, wy, pixels) of the kept particles' traces."""

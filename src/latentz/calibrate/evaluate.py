@@ -1,0 +1,127 @@
+"""Errors of widefield calibration (paper Fig. 5, Supp. Figs. 11–14) and the field maps of Fig. 4.
+
+For every field model, the local values of the calibration particles are modelled across the
+field at each z (for Δx', Δy') and at each shape value (for z), and the errors are the Zernike
+fit residuals or, for the interpolants, the leave-one-out residuals: the value predicted at a
+particle from all the others. Their RMS against z, for the square field and a circular subset,
+with the excess kurtosis of each error histogram, is the table :func:`evaluate` returns.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from latentz.calibrate.calibration import FIELD_MODELS, Calibration
+from latentz.calibrate.fieldmodels import FieldModel, field_errors
+
+__all__ = ["evaluate", "evaluate_figures"]
+
+
+def _columns(cal: Calibration, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per axis: (values (n_kept, m) in nm, the z (nm) of each column)."""
+    kept = cal.kept
+    planes = cal.local.z_nm[kept]  # each particle's plane positions, tilt-corrected nm
+    z_grid = np.linspace(np.nanpercentile(planes, 5), np.nanpercentile(planes, 95), n_z)
+    deltas = [cal.local_delta(z) for z in z_grid]
+    px = cal.camera.pixel_size_nm
+    dx = np.stack([d[0][kept] for d in deltas], axis=1) * px
+    dy = np.stack([d[1][kept] for d in deltas], axis=1) * px
+    inverse = cal.local.shapes[cal.shape].inverse
+    s_grid = np.linspace(
+        np.nanmin(inverse.domain[kept, 0]), np.nanmax(inverse.domain[kept, 1]), n_s
+    )
+    z_table = np.stack([cal.local_z(s)[kept] for s in s_grid], axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        z_of_column = np.nanmedian(z_table, axis=0)
+    return {"x": (dx, z_grid), "y": (dy, z_grid), "z": (z_table, z_of_column)}
+
+
+def evaluate(
+    cal: Calibration,
+    *,
+    kinds: tuple[str, ...] = FIELD_MODELS,
+    n_z: int = 41,
+    n_s: int = 81,
+    leave_one_out: bool | None = None,
+) -> pd.DataFrame:
+    """Widefield errors against z for each field model.
+
+    Returns
+    -------
+    DataFrame
+        One row per model, axis (x, y, z) and column: ``model``, ``axis``, ``z_nm``, and for
+        the square field and the circular subset ``n_*``, ``rms_*`` (nm), ``kurtosis_*``
+        (excess) and ``kurtosis_err_*``.
+    """
+    columns = _columns(cal, n_z, n_s)
+    x, y = cal.positions[cal.kept].T
+    shape = tuple(cal.options["field_shape"])
+    parts = []
+    for kind in kinds:
+        for axis, (values, z_of_column) in columns.items():
+            valid = np.isfinite(values)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                model = FieldModel.from_estimate(
+                    x,
+                    y,
+                    np.where(valid, values, 0.0),
+                    kind=kind,
+                    field_shape=shape,
+                    valid=valid,
+                    n_terms=cal.options.get("n_terms", 400),
+                )
+            table = field_errors(model, leave_one_out=leave_one_out)
+            table.insert(0, "z_nm", z_of_column[table["column"]])
+            table.insert(0, "axis", axis)
+            table.insert(0, "model", kind)
+            parts.append(table.drop(columns="column"))
+    return pd.concat(parts, ignore_index=True)
+
+
+def evaluate_figures(cal: Calibration, errors: pd.DataFrame | None = None) -> dict[str, Any]:
+    """Fig. 5 (RMS error against z per model and axis, square and circle) and Fig. 4 (vector
+    map of the apparent lateral motion between two z, and the surface of best focus)."""
+    import matplotlib.pyplot as plt
+
+    errors = evaluate(cal) if errors is None else errors
+    fig5, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
+    for col, axis in enumerate("xyz"):
+        for row, region in enumerate(("square", "circle")):
+            ax = axes[row, col]
+            for kind, group in errors[errors["axis"] == axis].groupby("model"):
+                ax.plot(group["z_nm"], group[f"rms_{region}"], label=kind)
+            ax.set(title=f"{axis}, {region} field", ylabel="RMS error (nm)")
+            ax.set_yscale("log")
+        axes[1, col].set_xlabel("z (nm)")
+    axes[0, 0].legend()
+    fig5.suptitle("Widefield errors (Zernike: fit residuals; interpolants: leave-one-out)")
+    fig5.tight_layout()
+
+    kept = cal.kept
+    x, y = cal.positions[kept].T
+    lo, hi = np.nanpercentile(cal.local.z_nm[kept], [10, 90])
+    dx0, dy0 = cal.local_delta(lo)
+    dx1, dy1 = cal.local_delta(hi)
+    px = cal.camera.pixel_size_nm
+    fig4, (a, b) = plt.subplots(1, 2, figsize=(12, 5.2))
+    q = a.quiver(x, y, (dx1 - dx0)[kept] * px, (dy1 - dy0)[kept] * px, angles="xy")
+    a.quiverkey(q, 0.85, 1.03, 50, "50 nm")
+    a.set(
+        title=f"apparent lateral motion from z = {lo:.0f} to {hi:.0f} nm",
+        xlabel="x (px)",
+        ylabel="y (px)",
+        aspect="equal",
+    )
+    a.invert_yaxis()
+    sc = b.scatter(x, y, c=cal.local.z_f[kept], cmap="viridis", s=12)
+    fig4.colorbar(sc, ax=b, label="z of best focus after tilt removal (nm)")
+    b.set(title="field curvature", xlabel="x (px)", aspect="equal")
+    b.invert_yaxis()
+    fig4.tight_layout()
+    return {"Fig. 5: widefield errors against z": fig5, "Fig. 4: field maps": fig4}
