@@ -94,7 +94,10 @@ def evaluate_figures(cal: Calibration, errors: pd.DataFrame | None = None) -> di
     for col, axis in enumerate("xyz"):
         for row, region in enumerate(("square", "circle")):
             ax = axes[row, col]
-            for kind, group in errors[errors["axis"] == axis].groupby("model"):
+            rows = errors[errors["axis"] == axis]
+            # columns that at least half of the particles cover, in order of z
+            rows = rows[rows[f"n_{region}"] >= 0.5 * rows[f"n_{region}"].max()]
+            for kind, group in rows.sort_values("z_nm").groupby("model"):
                 ax.plot(group["z_nm"], group[f"rms_{region}"], label=kind)
             ax.set(title=f"{axis}, {region} field", ylabel="RMS error (nm)")
             ax.set_yscale("log")
@@ -111,7 +114,7 @@ def evaluate_figures(cal: Calibration, errors: pd.DataFrame | None = None) -> di
     px = cal.camera.pixel_size_nm
     fig4, (a, b) = plt.subplots(1, 2, figsize=(12, 5.2))
     q = a.quiver(x, y, (dx1 - dx0)[kept] * px, (dy1 - dy0)[kept] * px, angles="xy")
-    a.quiverkey(q, 0.85, 1.03, 50, "50 nm")
+    a.quiverkey(q, 0.88, -0.12, 50, "50 nm", coordinates="axes")
     a.set(
         title=f"apparent lateral motion from z = {lo:.0f} to {hi:.0f} nm",
         xlabel="x (px)",
