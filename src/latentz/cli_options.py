@@ -56,6 +56,20 @@ def camera_from_options(
     return Camera(**values, flatfield=flatfield)
 
 
+def _numbers(path: str | os.PathLike, *, what: str, form: str, ndmin: int) -> np.ndarray:
+    """Numbers from a text file (comma-separated, ``#`` comments), with errors naming ``what``."""
+    source = Path(path)
+    if not source.exists():
+        raise FileNotFoundError(f"No such {what}: {source}")
+    try:
+        values = np.loadtxt(source, dtype=np.float64, delimiter=",", ndmin=ndmin, comments="#")
+    except ValueError as exc:
+        raise ValueError(f"The {what} {source.name} must hold {form}: {exc}") from exc
+    if values.ndim != ndmin:
+        raise ValueError(f"The {what} {source.name} must hold {form}.")
+    return values
+
+
 def z_positions(
     n_planes: int,
     *,
@@ -68,15 +82,7 @@ def z_positions(
     if z_file is not None:
         if z_start_nm is not None or z_step_nm is not None:
             raise ValueError("Give either --z-file or --z-start/--z-step, not both.")
-        path = Path(z_file)
-        if not path.exists():
-            raise FileNotFoundError(f"No such z file: {path}")
-        try:
-            z = np.loadtxt(path, dtype=np.float64, delimiter=",", ndmin=1, comments="#")
-        except ValueError as exc:
-            raise ValueError(f"z file {path.name} must hold one number per line: {exc}") from exc
-        if z.ndim != 1:
-            raise ValueError(f"z file {path.name} must hold one number per line.")
+        z = _numbers(z_file, what="z file", form="one number per line", ndmin=1)
     else:
         if z_start_nm is None or z_step_nm is None:
             raise ValueError("Give the plane positions with --z-start and --z-step, or --z-file.")
@@ -91,15 +97,10 @@ def z_positions(
 def stage_offsets_px(path: str | os.PathLike, n_stacks: int) -> np.ndarray:
     """(x, y) field position of each stack's pixel [0, 0] (pixels), from a CSV row per stack."""
     source = Path(path)
-    if not source.exists():
-        raise FileNotFoundError(f"No such stage-offset file: {source}")
-    try:
-        offsets = np.loadtxt(source, dtype=np.float64, delimiter=",", ndmin=2, comments="#")
-    except ValueError as exc:
-        raise ValueError(f"Stage-offset file {source.name} must hold 'x,y' rows: {exc}") from exc
+    offsets = _numbers(source, what="stage-offset file", form="'x,y' rows", ndmin=2)
     if offsets.shape != (n_stacks, 2) or not np.all(np.isfinite(offsets)):
         raise ValueError(
-            f"Stage-offset file {source.name} must hold {n_stacks} finite 'x,y' rows "
+            f"The stage-offset file {source.name} must hold {n_stacks} finite 'x,y' rows "
             f"(one per stack), got shape {offsets.shape}."
         )
     return offsets
