@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -157,12 +158,29 @@ def load(path: str | os.PathLike):
     """Read a calibration written by :func:`save`."""
     import h5py
 
+    source = Path(path)
+    if not source.exists():
+        raise FileNotFoundError(f"No such calibration file: {source}")
     arrays: dict[str, np.ndarray] = {}
-    with h5py.File(path, "r") as h5:
-        h5.visititems(
-            lambda key, obj: (
-                arrays.__setitem__(key, obj[()]) if isinstance(obj, h5py.Dataset) else None
+    try:
+        with h5py.File(source, "r") as h5:
+            h5.visititems(
+                lambda key, obj: (
+                    arrays.__setitem__(key, obj[()]) if isinstance(obj, h5py.Dataset) else None
+                )
             )
+            attrs = {key: json.loads(value) for key, value in h5.attrs.items()}
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"Cannot read {source.name} as a latentz calibration: {exc}") from exc
+    found = attrs.get("format")
+    if found != FORMAT:
+        raise ValueError(
+            f"{source.name} is not a calibration this latentz ({__version__}) can read: format "
+            f"{found!r} (written by latentz {attrs.get('version', '?')}), expected {FORMAT!r}."
         )
-        attrs = {key: json.loads(value) for key, value in h5.attrs.items()}
-    return from_arrays(arrays, attrs)
+    try:
+        return from_arrays(arrays, attrs)
+    except KeyError as exc:
+        raise ValueError(
+            f"{source.name} is a damaged latentz calibration: {exc.args[0]!r} is missing."
+        ) from exc
