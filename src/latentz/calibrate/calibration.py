@@ -204,7 +204,9 @@ class Calibration:
             if self.kept.size == 0:
                 raise ValueError("Every calibration particle was culled: nothing to apply.")
             self._cache["tree"] = cKDTree(self.positions[self.kept])
-        _, idx = self._cache["tree"].query(np.column_stack([x, y]))
+        # huge but finite coordinates overflow the tree's distances (index n = "none found")
+        points = np.clip(np.column_stack([x, y]), -1e12, 1e12)
+        _, idx = self._cache["tree"].query(points)
         return self.kept[idx]
 
     def apply(

@@ -212,6 +212,9 @@ class WidefieldModel:
         y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
         s = np.atleast_1d(np.asarray(s, dtype=np.float64))
         check_int("iterations", iterations, minimum=0)
+        if x.size == 0:
+            empty = np.empty(0)
+            return empty, empty, empty, np.zeros(0, dtype=bool)
         h, w = self.axial.field_shape
         with np.errstate(invalid="ignore"):  # spots beyond the calibrated field: out of range
             beyond = (x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5)
