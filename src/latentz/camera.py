@@ -67,17 +67,24 @@ class Camera:
         """
         arr = check_array("adu", adu, ndim=range(2, 5)).astype(np.float64)
         photons = (arr - self.offset) * self.gain
-        if self.flatfield is not None:
-            r0, c0 = origin
-            h, w = arr.shape[-2:]
-            flat = self.flatfield[r0 : r0 + h, c0 : c0 + w]
-            if flat.shape != (h, w):
-                raise ValueError(
-                    f"Image of shape {(h, w)} at origin {origin} does not fit inside the "
-                    f"flatfield of shape {self.flatfield.shape}."
-                )
-            photons = photons / flat
-        return photons
+        flat = self.flatfield_region(arr.shape[-2:], origin=origin)
+        return photons if flat is None else photons / flat
+
+    def flatfield_region(
+        self, shape: tuple[int, int], *, origin: tuple[int, int] = (0, 0)
+    ) -> np.ndarray | None:
+        """The flatfield under an image of ``shape`` (rows, columns) whose first pixel lies at
+        ``origin`` (row, column) on the sensor; None for a uniform camera."""
+        if self.flatfield is None:
+            return None
+        (r0, c0), (h, w) = origin, shape
+        flat = self.flatfield[r0 : r0 + h, c0 : c0 + w]
+        if flat.shape != (h, w):
+            raise ValueError(
+                f"Image of shape {(h, w)} at origin {origin} does not fit inside the "
+                f"flatfield of shape {self.flatfield.shape}."
+            )
+        return flat
 
     def to_adu(self, photons: Any) -> np.ndarray:
         """Convert photoelectrons to ADU (the inverse of :meth:`to_photons`, without flatfield)."""

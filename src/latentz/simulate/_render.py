@@ -142,23 +142,14 @@ def expose(
     Gaussian read noise (``camera.readnoise`` e⁻), ``/ gain + offset``, rounding, and clipping to
     0…65,535. Returns uint16 ADU of the same shape."""
     out = np.empty(expected.shape, dtype=np.uint16)
-    flat = None
-    if camera.flatfield is not None:
-        r0, c0 = origin
-        h, w = expected.shape[-2:]
-        flat = camera.flatfield[r0 : r0 + h, c0 : c0 + w]
-        if flat.shape != (h, w):
-            raise ValueError(
-                f"Frames of shape {(h, w)} at origin {origin} do not fit inside the camera "
-                f"flatfield of shape {camera.flatfield.shape}."
-            )
+    flat = camera.flatfield_region(expected.shape[-2:], origin=origin)
     planes = expected.reshape(-1, *expected.shape[-2:])
     for k, plane in enumerate(planes):
         mean = plane if flat is None else plane * flat
         electrons = rng.poisson(mean).astype(np.float64)
         if camera.readnoise > 0:
             electrons += rng.normal(0.0, camera.readnoise, size=mean.shape)
-        adu = np.rint(electrons / camera.gain + camera.offset)
+        adu = np.rint(camera.to_adu(electrons))
         out.reshape(planes.shape)[k] = np.clip(adu, 0, ADU_MAX)
     return out
 
