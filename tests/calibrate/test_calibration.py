@@ -102,6 +102,53 @@ def test_batch_evaluation_over_particles(calibrated):
     assert dx.shape == dy.shape == (60,)
 
 
+def test_local_models_are_never_extrapolated_beyond_the_imaged_z_span(calibrated):
+    from latentz.calibrate.widefield import WidefieldModel
+
+    cal, traces, _ = calibrated
+    lo, hi = cal.z_span_nm.T
+    # the tilt-corrected span is the piezo range shifted by the plane under each particle
+    shift = cal.plane(*(cal.positions * 100).T)
+    np.testing.assert_allclose(lo, traces.z_nm[0] - shift)
+    np.testing.assert_allclose(hi, traces.z_nm[-1] - shift)
+    for z, finite in ((hi + 100.0, False), (lo - 100.0, False), ((lo + hi) / 2, True)):
+        dx, dy = cal.local_delta(z)
+        assert np.isfinite(dx).tolist() == [finite] * 60
+        assert np.isfinite(dy).tolist() == [finite] * 60
+    # the widefield tables take a particle's values only inside its span, however far the z
+    # grid reaches for the others (a 16th-order polynomial beyond its data is meaningless)
+    model = WidefieldModel.from_calibration(cal, kind="nearest", field_shape=(520, 520))
+    kept = cal.kept
+    inside = (model.z_grid_nm >= lo[kept, None]) & (model.z_grid_nm <= hi[kept, None])
+    assert (model.dx.valid == inside).all() and (model.dy.valid == inside).all()
+    z_lo, z_hi = cal.z_span_nm[kept].T
+    with np.errstate(invalid="ignore"):
+        z_ok = (model.axial.values >= z_lo[:, None]) & (model.axial.values <= z_hi[:, None])
+    assert (z_ok == model.axial.valid).all()
+
+
+def test_the_shape_grid_spans_what_enough_particles_cover(calibrated):
+    from latentz.calibrate.widefield import WidefieldModel
+
+    cal, _, _ = calibrated
+    domain = cal.local.shapes[cal.shape].inverse.domain[cal.kept]
+    model = WidefieldModel.from_calibration(
+        cal, kind="nearest", field_shape=(520, 520), min_particles=10
+    )
+    count = np.sum((domain[:, :1] <= model.s_grid) & (model.s_grid <= domain[:, 1:]), axis=0)
+    assert count[0] >= 10 and count[-1] >= 10
+    # just beyond either end, fewer than 10 particles cover
+    step = np.diff(model.s_grid[:2])[0] * 1e-3
+    for s in (model.s_grid[0] - step, model.s_grid[-1] + step):
+        assert np.sum((domain[:, 0] <= s) & (s <= domain[:, 1])) < 10
+    # asking for more particles than were kept asks for all of them
+    model = WidefieldModel.from_calibration(
+        cal, kind="nearest", field_shape=(520, 520), min_particles=100
+    )
+    count = np.sum((domain[:, :1] <= model.s_grid) & (model.s_grid <= domain[:, 1:]), axis=0)
+    assert (count == len(cal.kept)).all()
+
+
 def test_bad_input(calibrated):
     cal, traces, _ = calibrated
     z = np.arange(30.0) * 100

@@ -183,20 +183,43 @@ class Calibration:
         mean = row_mean(np.where(have, model.sigma_z, np.nan))
         return np.where(frac >= coverage, mean, np.nan)
 
+    @property
+    def z_span_nm(self) -> np.ndarray:
+        """(n, 2) lowest and highest tilt-corrected z (nm) each particle was imaged at: the only
+        z over which its local models are known."""
+        if "z_span" not in self._cache:
+            z = self.local.z_nm
+            self._cache["z_span"] = np.stack([np.nanmin(z, axis=1), np.nanmax(z, axis=1)], axis=1)
+        return self._cache["z_span"]
+
+    def _within_span(self, z: np.ndarray) -> np.ndarray:
+        lo, hi = self.z_span_nm.T
+        with np.errstate(invalid="ignore"):
+            return (z >= lo) & (z <= hi)
+
     def local_z(self, value: Any, *, shape: str | None = None) -> np.ndarray:
         """z (nm) of every calibration particle for one shape value (scalar or (n,) array).
 
-        NaN where the value is outside the particle's monotonic range (never extrapolated).
+        NaN where the value is outside the particle's monotonic range, or where its inverse
+        polynomial leaves the z span the particle was imaged over (never extrapolated).
         """
         model = self.local.shapes[shape or self.shape].inverse
         s = np.broadcast_to(np.asarray(value, dtype=np.float64), (len(model),))
         z = model(s)
-        return np.where(model.contains(s) & model.valid, z, np.nan)
+        return np.where(model.contains(s) & model.valid & self._within_span(z), z, np.nan)
 
     def local_delta(self, z_nm: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Δx'(z), Δy'(z) (pixels) of every calibration particle at z (scalar or (n,) array)."""
+        """Δx'(z), Δy'(z) (pixels) of every calibration particle at z (scalar or (n,) array).
+
+        NaN where z is outside the span the particle was imaged over: a polynomial of order 16
+        extrapolated beyond its data is meaningless (never extrapolated).
+        """
         z = np.broadcast_to(np.asarray(z_nm, dtype=np.float64), (len(self.local.dx),))
-        return self.local.dx(z), self.local.dy(z)
+        inside = self._within_span(z)
+        return (
+            np.where(inside, self.local.dx(z), np.nan),
+            np.where(inside, self.local.dy(z), np.nan),
+        )
 
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""

@@ -25,7 +25,7 @@ from latentz._shared.validate import check_array, check_int, check_positive
 from latentz.calibrate.fieldmodels import FieldModel
 from latentz.zernike import zernike_design
 
-__all__ = ["WidefieldModel"]
+__all__ = ["WidefieldModel", "covered_span"]
 
 
 def _bracket(grid: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -34,6 +34,26 @@ def _bracket(grid: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     j = np.clip(np.searchsorted(grid, np.where(inside, v, grid[0])) - 1, 0, grid.size - 2)
     t = (np.where(inside, v, grid[0]) - grid[j]) / (grid[j + 1] - grid[j])
     return j, t, inside
+
+
+def covered_span(domain: np.ndarray, min_particles: int) -> tuple[float, float]:
+    """Smallest and largest shape value inside at least ``min_particles`` of the (n, 2) ranges."""
+    lo, hi = domain[:, 0], domain[:, 1]
+    ok = np.isfinite(lo) & np.isfinite(hi)
+    if ok.sum() < min_particles:
+        raise ValueError(
+            f"Only {int(ok.sum())} kept calibration particles have a monotonic shape range; "
+            f"the widefield model needs at least {min_particles}."
+        )
+    lo, hi = lo[ok], hi[ok]
+    ends = np.concatenate([lo, hi])  # the coverage count only changes at range ends
+    count = np.sum((lo[:, None] <= ends) & (ends <= hi[:, None]), axis=0)
+    covered = ends[count >= min_particles]
+    if covered.size == 0:
+        raise ValueError(
+            f"No shape value is inside the ranges of {min_particles} kept calibration particles."
+        )
+    return float(covered.min()), float(covered.max())
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,27 +154,30 @@ class WidefieldModel:
         n_terms: int = 400,
         n_s: int = 241,
         z_step_nm: float = 25.0,
+        min_particles: int = 10,
         k_near: int = 6,
         min_fraction: float = 0.5,
     ) -> WidefieldModel:
         """Tabulate a :class:`~latentz.calibrate.calibration.Calibration`'s kept particles.
 
-        ``field_shape`` is ``(H, W)`` of the whole field in pixels (stage positions included);
-        the s grid spans the kept particles' ranges in ``n_s`` values, the z grid the resulting
-        heights in steps of at most ``z_step_nm``; other options as in :meth:`from_tables`.
+        ``field_shape`` is ``(H, W)`` of the whole field in pixels (stage positions included).
+        The s grid has ``n_s`` values over the shape values that at least ``min_particles`` kept
+        particles cover (a few particles with unusual ranges must not stretch it), and the z grid
+        spans the resulting heights in steps of at most ``z_step_nm``. Each particle contributes
+        only inside its own ranges: its monotonic shape range and the z span it was imaged over
+        (:meth:`~latentz.calibrate.calibration.Calibration.local_z`, ``local_delta``). Other
+        options as in :meth:`from_tables`.
         """
         kept = cal.kept
-        inverse = cal.local.shapes[cal.shape].inverse
-        lo, hi = np.nanmin(inverse.domain[kept, 0]), np.nanmax(inverse.domain[kept, 1])
-        s_grid = np.linspace(lo, hi, check_int("n_s", n_s, minimum=2))
+        n_s = check_int("n_s", n_s, minimum=2)
+        min_particles = check_int("min_particles", min_particles, minimum=1)
+        s_lo, s_hi = covered_span(
+            cal.local.shapes[cal.shape].inverse.domain[kept], min(min_particles, kept.size)
+        )
+        s_grid = np.linspace(s_lo, s_hi, n_s)
         z_table = np.stack([cal.local_z(s)[kept] for s in s_grid], axis=1)
-        # an inverse polynomial is only trusted inside the z range its particle was imaged over
-        z_span = cal.local.z_nm[kept]
-        with np.errstate(invalid="ignore"):
-            outside = (z_table < np.nanmin(z_span, axis=1, keepdims=True)) | (
-                z_table > np.nanmax(z_span, axis=1, keepdims=True)
-            )
-        z_table[outside] = np.nan
+        if not np.isfinite(z_table).any():
+            raise ValueError("No kept calibration particle gives z for any shape value.")
         z_lo, z_hi = np.nanmin(z_table), np.nanmax(z_table)
         step = check_positive("z_step_nm", z_step_nm)
         z_grid = np.linspace(z_lo, z_hi, max(2, int(np.ceil((z_hi - z_lo) / step)) + 1))
