@@ -23,7 +23,16 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.validate import check_array, check_int, check_positive
 
-__all__ = ["Detections", "band_pass", "noise_level", "find_peaks", "detect_arrays", "detect"]
+__all__ = [
+    "Detections",
+    "band_pass",
+    "noise_level",
+    "find_peaks",
+    "roi_corners",
+    "cut_rois",
+    "detect_arrays",
+    "detect",
+]
 
 #: Default detection threshold, in units of the filtered background noise.
 DEFAULT_THRESHOLD = 5.0
@@ -136,6 +145,29 @@ def _close_pairs(rows: np.ndarray, cols: np.ndarray, half: int) -> np.ndarray:
     return flags
 
 
+def roi_corners(
+    rows: np.ndarray, cols: np.ndarray, roi_size: int, frame_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First pixel ``(row0, col0)`` of the ROIs centred on integer ``(rows, cols)``, shifted
+    inward to stay whole inside frames of ``frame_shape``, and whether they were shifted."""
+    half = roi_size // 2
+    row0 = np.clip(rows - half, 0, frame_shape[0] - roi_size)
+    col0 = np.clip(cols - half, 0, frame_shape[1] - roi_size)
+    return row0, col0, (row0 != rows - half) | (col0 != cols - half)
+
+
+def cut_rois(
+    stack: np.ndarray, frame: np.ndarray, row0: np.ndarray, col0: np.ndarray, roi_size: int
+) -> np.ndarray:
+    """ROIs ``(n, roi_size, roi_size)`` (float64) of ``stack (t, H, W)`` at the given corners."""
+    offsets = np.arange(roi_size)
+    return stack[
+        frame[:, None, None],
+        row0[:, None, None] + offsets[None, :, None],
+        col0[:, None, None] + offsets[None, None, :],
+    ].astype(np.float64)
+
+
 def detect_arrays(
     frames: Any,
     *,
@@ -178,19 +210,12 @@ def detect_arrays(
         rows, cols, snr = find_peaks(
             frame, threshold=threshold, sigma=sigma, min_distance=min_distance
         )
-        row0 = np.clip(rows - half, 0, height - roi_size)
-        col0 = np.clip(cols - half, 0, width - roi_size)
-        edge = (row0 != rows - half) | (col0 != cols - half)
+        row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
         close = _close_pairs(rows, cols, half)
         parts.append((np.full(len(rows), t), rows, cols, snr, row0, col0, edge, close))
     columns = [np.concatenate(c) for c in zip(*parts, strict=True)]
     frame_idx, _, _, _, row0, col0 = (c.astype(np.int64) for c in columns[:6])
-    offsets = np.arange(roi_size)
-    rois = stack[
-        frame_idx[:, None, None],
-        row0[:, None, None] + offsets[None, :, None],
-        col0[:, None, None] + offsets[None, None, :],
-    ].astype(np.float64)
+    rois = cut_rois(stack, frame_idx, row0, col0, roi_size)
     return Detections(
         frame_idx,
         columns[1].astype(np.int64),

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import detect_arrays
+from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
 from latentz.io import as_frames
 
@@ -49,14 +49,42 @@ def _localize_chunk(
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in LOCALIZE_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
-    table = result_table(fit_arrays(found.rois, method=method, readnoise=readnoise))
-    table["x"] += found.col0
-    table["y"] += found.row0
+    fit = fit_arrays(found.rois, method=method, readnoise=readnoise)
+    row0, col0, edge = found.row0, found.col0, found.edge
+    # Centre each ROI on its fitted position, as calibration centres its fixed ROI on the
+    # particle: the fitted widths and centre of a wide, truncated spot depend on where the ROI
+    # sits, and the detection peak can be a pixel off for a defocused, asymmetric image.
+    x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
+    ok = np.isfinite(x) & np.isfinite(y)
+    rows = np.where(ok, np.rint(y), found.row).astype(np.int64)
+    cols = np.where(ok, np.rint(x), found.col).astype(np.int64)
+    new_row0, new_col0, new_edge = roi_corners(rows, cols, roi_size, photons.shape[-2:])
+    moved = (new_row0 != row0) | (new_col0 != col0)
+    if moved.any():
+        rois = cut_rois(
+            photons[None] if photons.ndim == 2 else photons,
+            found.frame[moved],
+            new_row0[moved],
+            new_col0[moved],
+            roi_size,
+        )
+        refit = fit_arrays(rois, method=method, readnoise=readnoise)
+        fit = type(fit)(*(_replace_rows(a, b, moved) for a, b in zip(fit, refit, strict=True)))
+        row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
+    table = result_table(fit)
+    table["x"] += col0
+    table["y"] += row0
     table.insert(0, "frame", first_frame + found.frame)
     table["snr"] = found.snr
-    table["edge"] = found.edge
+    table["edge"] = edge
     table["close_pair"] = found.close_pair
     return table
+
+
+def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    out = old.copy()
+    out[rows] = new
+    return out
 
 
 def _dtype(column: str) -> str:

@@ -178,12 +178,11 @@ def find_particles(
 
 def _roi_corners(positions: np.ndarray, shape: tuple[int, int], roi_size: int) -> np.ndarray:
     """Top-left (row, col) of a ROI centred on each (x, y), clipped inside the image."""
-    half = roi_size // 2
-    centre = np.rint(positions[:, ::-1]).astype(int)
-    corner = centre - half
-    corner[:, 0] = np.clip(corner[:, 0], 0, shape[0] - roi_size)
-    corner[:, 1] = np.clip(corner[:, 1], 0, shape[1] - roi_size)
-    return corner
+    from latentz.detect import roi_corners
+
+    centre = np.rint(positions).astype(int)
+    row0, col0, _ = roi_corners(centre[:, 1], centre[:, 0], roi_size, shape)
+    return np.column_stack([row0, col0])
 
 
 def _fit_stack(
