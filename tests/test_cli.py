@@ -144,6 +144,22 @@ def calibrated(run_dir):
     return folder / "cal.h5"
 
 
+def test_calibration_records_its_inputs(run_dir, calibrated):
+    import hashlib
+
+    from latentz import __version__
+    from latentz.calibrate import Calibration
+
+    folder, _ = run_dir
+    record = Calibration.load(calibrated).provenance
+    for role, name in (("stacks", "stack.tif"), ("z_file", "z.txt")):
+        (entry,) = record["inputs"][role]
+        assert entry["name"].endswith(name)
+        assert entry["sha256"] == hashlib.sha256((folder / name).read_bytes()).hexdigest()
+    assert record["latentz_version"] == __version__
+    assert record["created"].startswith("20")  # ISO 8601 date and time, UTC
+
+
 def test_pipeline_localize_track_report(run_dir, calibrated):
     folder, gear = run_dir
     result = run(

@@ -150,6 +150,7 @@ def calibrate(
     from latentz.calibrate import calibrate as run_calibration
     from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
     from latentz.io import read_stack
+    from latentz.pipeline import provenance
 
     camera = camera_from_options(
         camera_file, offset=offset, gain=gain, readnoise=readnoise, pixel_size_nm=pixel_size_nm
@@ -170,7 +171,15 @@ def calibrate(
         stage_offsets_px=offsets,
         sources=[str(p) for p in stacks],
     )
-    cal.save(out)
+    inputs = {"stacks": list(stacks)}
+    for role, path in (
+        ("z_file", z_file),
+        ("camera", camera_file),
+        ("stage_offsets", stage_offsets),
+    ):
+        if path is not None:
+            inputs[role] = path
+    cal.save(out, provenance=provenance(inputs, {"command": "latentz calibrate"}))
     click.echo(
         f"{out}: {len(cal.kept)} of {len(cal.culled)} particles kept, tilt {cal.tilt_mrad:.2f} mrad"
     )

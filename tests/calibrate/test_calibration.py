@@ -249,6 +249,9 @@ def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
     back = Calibration.load(path)
     arrays, attrs = cal.as_arrays()
     arrays2, attrs2 = back.as_arrays()
+    record = attrs2.pop("provenance")
+    assert record["inputs"] == ["synthetic"] and record["latentz_version"] and record["created"]
+    attrs.pop("provenance")
     assert attrs == attrs2
     assert arrays.keys() == arrays2.keys()
     for key, value in arrays.items():
@@ -259,6 +262,75 @@ def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
         from latentz.calibrate._state import from_arrays
 
         from_arrays(arrays, {**attrs, "format": "other"})
+
+
+@pytest.fixture(scope="module")
+def zernike_file(calibrated, tmp_path_factory):
+    cal, traces, _ = calibrated
+    wide = calibrate_traces(traces, camera=CAM, field_model="zernike", n_terms=28)
+    path = tmp_path_factory.mktemp("zernike") / "cal.h5"
+    wide.save(path)
+    return wide, traces, path
+
+
+def test_widefield_models_are_stored_and_apply_bit_identically(zernike_file):
+    import h5py
+
+    from latentz.calibrate.calibration import Calibration
+
+    wide, traces, path = zernike_file
+    with h5py.File(path, "r") as handle:
+        for name in ("s_grid", "z_grid_nm", "axial/coefficients", "dx/values", "dy/valid"):
+            assert f"widefield/{name}" in handle, name
+    back = Calibration.load(path)
+    assert "widefield" in back._cache  # read from the file, not re-tabulated
+    arrays, options = wide.widefield.as_arrays()
+    arrays2, options2 = back.widefield.as_arrays()
+    assert options == options2 and arrays.keys() == arrays2.keys()
+    for key, value in arrays.items():
+        np.testing.assert_array_equal(value, arrays2[key], err_msg=key)
+    spots = traces_table(traces.subset([3, 4, 5]))
+    located = wide.apply(spots)
+    assert located["in_range"].sum() > 30
+    pd.testing.assert_frame_equal(located, back.apply(spots))
+
+
+def test_a_format_1_file_rebuilds_its_widefield_models(zernike_file, tmp_path):
+    import json
+    import shutil
+
+    import h5py
+
+    from latentz.calibrate.calibration import Calibration
+
+    wide, traces, path = zernike_file
+    old = tmp_path / "old.h5"
+    shutil.copy(path, old)
+    with h5py.File(old, "a") as handle:  # what latentz wrote before the widefield group
+        del handle["widefield"]
+        del handle.attrs["widefield"]
+        handle.attrs["format"] = json.dumps("latentz-calibration/1")
+    back = Calibration.load(old)
+    assert "widefield" not in back._cache
+    spots = traces_table(traces.subset([3, 4, 5]))
+    pd.testing.assert_frame_equal(wide.apply(spots), back.apply(spots))
+
+
+@pytest.mark.parametrize("damage", ["group", "part"])
+def test_a_missing_widefield_dataset_is_a_damaged_file(zernike_file, tmp_path, damage):
+    import shutil
+
+    import h5py
+
+    from latentz.calibrate.calibration import Calibration
+
+    _, _, path = zernike_file
+    bad = tmp_path / "bad.h5"
+    shutil.copy(path, bad)
+    with h5py.File(bad, "a") as handle:
+        del handle["widefield" if damage == "group" else "widefield/dx/coefficients"]
+    with pytest.raises(ValueError, match="bad.h5 is a damaged latentz calibration"):
+        Calibration.load(bad)
 
 
 def test_a_tiff_path_with_a_single_bead_and_explicit_position(tmp_path):

@@ -3,8 +3,10 @@
 Every part of a :class:`~latentz.calibrate.calibration.Calibration` is arrays plus a few
 scalars and options, so it flattens to ``{"group/name": ndarray}``. :func:`save` writes that
 mapping to HDF5 (one dataset per key, options, camera and provenance as JSON attributes) through
-an atomic temporary file; :func:`load` reads it back bit for bit. The widefield stage adds its
-models under its own group.
+an atomic temporary file; :func:`load` reads it back bit for bit. The widefield models (the
+tables that ``apply`` interpolates) are stored under ``widefield/``, so a loaded calibration applies
+them without re-tabulating. Format 1 files (before the widefield group) are still read: their
+widefield models are rebuilt from the local models, which gives the same tables.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ from latentz._version import __version__
 
 __all__ = ["to_arrays", "from_arrays", "save", "load", "FORMAT"]
 
-FORMAT = "latentz-calibration/1"
+FORMAT = "latentz-calibration/2"
+_READABLE = (FORMAT, "latentz-calibration/1")
 
 
 def _poly(prefix: str, model) -> dict[str, np.ndarray]:
@@ -73,7 +76,11 @@ def to_arrays(cal) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "plane": [cal.plane.c0, cal.plane.cx, cal.plane.cy],
         "theta": local.theta,
         "n_scores": len(cal.scores),
+        "provenance": cal.provenance,
     }
+    if cal.widefield is not None:
+        wide, attrs["widefield"] = cal.widefield.as_arrays()
+        arrays.update({f"widefield/{k}": v for k, v in wide.items()})
     return arrays, attrs
 
 
@@ -86,7 +93,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
     from latentz.calibrate.traces import Traces
     from latentz.camera import Camera
 
-    if attrs.get("format") != FORMAT:
+    if attrs.get("format") not in _READABLE:
         raise ValueError(f"Not a latentz calibration (format {attrs.get('format')!r}).")
 
     def poly(prefix: str) -> PolyModel:
@@ -128,7 +135,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
     )
     camera = Camera(**attrs["camera"], flatfield=arrays.get("camera/flatfield"))
     scores = pd.DataFrame(group("culling/scores/"), index=np.arange(attrs["n_scores"]))
-    return Calibration(
+    cal = Calibration(
         camera=camera,
         traces=traces,
         local=local,
@@ -137,7 +144,17 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
         reason=np.array([r.decode() for r in arrays["culling/reason"]], dtype=object),
         scores=scores,
         options=attrs["options"],
+        provenance=attrs.get("provenance") or {},
     )
+    if "widefield" in attrs:
+        from latentz.calibrate.widefield import WidefieldModel
+
+        cal._cache["widefield"] = WidefieldModel.from_arrays(
+            group("widefield/"), attrs["widefield"]
+        )
+    elif attrs["format"] == FORMAT and cal.field_model != "nearest":
+        raise KeyError("widefield")
+    return cal
 
 
 def save(cal, path: str | os.PathLike, *, provenance: dict[str, Any] | None = None) -> None:
@@ -145,8 +162,14 @@ def save(cal, path: str | os.PathLike, *, provenance: dict[str, Any] | None = No
     information such as input file names and hashes)."""
     import h5py
 
+    from latentz.pipeline import provenance as describe
+
     arrays, attrs = to_arrays(cal)
-    attrs = {**attrs, "provenance": provenance or {}}
+    record = {**cal.provenance, **(provenance or {})}
+    now = describe({}, {})
+    for key in ("latentz_version", "created"):  # unless the calibration already records them
+        record.setdefault(key, now[key])
+    attrs = {**attrs, "provenance": record}
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         for key, value in arrays.items():
             h5.create_dataset(key, data=value)
@@ -173,7 +196,7 @@ def load(path: str | os.PathLike):
     except (OSError, ValueError) as exc:
         raise ValueError(f"Cannot read {source.name} as a latentz calibration: {exc}") from exc
     found = attrs.get("format")
-    if found != FORMAT:
+    if found not in _READABLE:
         raise ValueError(
             f"{source.name} is not a calibration this latentz ({__version__}) can read: format "
             f"{found!r} (written by latentz {attrs.get('version', '?')}), expected {FORMAT!r}."
@@ -184,3 +207,5 @@ def load(path: str | os.PathLike):
         raise ValueError(
             f"{source.name} is a damaged latentz calibration: {exc.args[0]!r} is missing."
         ) from exc
+    except ValueError as exc:  # inconsistent or incomplete arrays of a stored model
+        raise ValueError(f"{source.name} is a damaged latentz calibration: {exc}") from exc

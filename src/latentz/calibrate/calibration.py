@@ -55,6 +55,9 @@ class Calibration:
         Robust z-scores of the culling features.
     options : dict
         Every option used.
+    provenance : dict
+        Where it came from: the inputs' names and SHA-256, the latentz version and the date
+        (filled by :meth:`save`, the CLI, and read back by :meth:`load`).
     """
 
     camera: Camera
@@ -65,6 +68,7 @@ class Calibration:
     reason: np.ndarray
     scores: pd.DataFrame
     options: dict[str, Any]
+    provenance: dict[str, Any] = field(default_factory=dict)
     _cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def as_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -76,7 +80,8 @@ class Calibration:
     def save(self, path: Any, *, provenance: dict[str, Any] | None = None) -> None:
         """Write to an HDF5 file atomically; :meth:`load` reads it back exactly.
 
-        ``provenance`` (JSON-able) is stored with the options, camera and package version.
+        ``provenance`` (JSON-able, e.g. input files and their SHA-256) is added to
+        :attr:`provenance` and stored with the options, camera, the latentz version and the date.
         """
         from latentz.calibrate._state import save
 

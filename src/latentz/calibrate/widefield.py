@@ -27,6 +27,8 @@ from latentz.zernike import zernike_design
 
 __all__ = ["WidefieldModel", "covered_span"]
 
+_PARTS = ("axial", "dx", "dy")  # the three field models, as named in files
+
 
 def _bracket(grid: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Left column index, weight of the right column, and whether v is inside the grid."""
@@ -198,6 +200,39 @@ class WidefieldModel:
             n_terms=n_terms,
             k_near=k_near,
             min_fraction=min_fraction,
+        )
+
+    def as_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """``({"name": ndarray}, JSON-able options)``; :meth:`from_arrays` rebuilds a model whose
+        evaluation is bit-identical, without refitting."""
+        arrays = {"s_grid": self.s_grid, "z_grid_nm": self.z_grid_nm}
+        options: dict[str, Any] = {"k_near": self.k_near, "min_fraction": self.min_fraction}
+        for name in _PARTS:
+            part, part_options = getattr(self, name).as_arrays()
+            arrays.update({f"{name}/{k}": v for k, v in part.items()})
+            options[name] = part_options
+        return arrays, options
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, Any], options: dict[str, Any]) -> WidefieldModel:
+        """Rebuild from :meth:`as_arrays` output; a missing part is a ``ValueError``."""
+        missing = [k for k in ("s_grid", "z_grid_nm") if k not in arrays]
+        missing += [k for k in (*_PARTS, "k_near", "min_fraction") if k not in options]
+        if missing:
+            raise ValueError(f"Widefield model arrays are missing {', '.join(missing)}.")
+        parts = {
+            name: FieldModel.from_arrays(
+                {k[len(name) + 1 :]: v for k, v in arrays.items() if k.startswith(f"{name}/")},
+                options[name],
+            )
+            for name in _PARTS
+        }
+        return cls(
+            np.asarray(arrays["s_grid"], dtype=np.float64),
+            np.asarray(arrays["z_grid_nm"], dtype=np.float64),
+            **parts,
+            k_near=int(options["k_near"]),
+            min_fraction=float(options["min_fraction"]),
         )
 
     @property
