@@ -367,3 +367,17 @@ def test_a_tiff_path_with_a_single_bead_and_explicit_position(tmp_path):
     assert len(cal.particles) == 1 and not cal.culled[0]
     # one particle: no population to cull against, and a flat "tilt" plane at its focus
     assert cal.tilt_mrad == 0.0 and cal.particles["z_f_nm"].iloc[0] == 0.0
+
+
+def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
+    from latentz.calibrate.calibration import _interp_rows
+
+    rng = np.random.default_rng(5)
+    planes = np.linspace(-3000.0, 3000.0, 61)
+    grid = planes - rng.uniform(-400, 400, 30)[:, None]  # each particle's tilt-corrected planes
+    values = rng.uniform(1, 50, grid.shape)
+    rows = rng.integers(0, 30, 500)
+    z = rng.uniform(-3600, 3600, 500)  # some beyond a row's grid: the end value is held
+    z[:5] = np.nan
+    expected = np.array([np.interp(zk, grid[r], values[r]) for r, zk in zip(rows, z)])
+    np.testing.assert_allclose(_interp_rows(grid, values, rows, z), expected, rtol=1e-12)

@@ -226,6 +226,22 @@ class Calibration:
             np.where(inside, self.local.dy(z), np.nan),
         )
 
+    def _error_model(self, axis: str) -> tuple[np.ndarray, np.ndarray, Any]:
+        """For "z" (the calibration's shape), "x" or "y": each particle's residual σ (n, n_z)
+        with gaps bridged by the nearest finite value, its count of finite values (n,), and the
+        derivative of its model (the inverse z(s), or Δx'(z), Δy'(z)); computed once."""
+        key = f"error_model/{axis}"
+        if key not in self._cache:
+            if axis == "z":
+                shape = self.local.shapes[self.shape]
+                sigma, model = shape.sigma_z, shape.inverse
+            else:
+                sigma = self.local.sigma_dx if axis == "x" else self.local.sigma_dy
+                model = self.local.dx if axis == "x" else self.local.dy
+            filled = pd.DataFrame(sigma.T).ffill().bfill().to_numpy().T
+            self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
+        return self._cache[key]
+
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
         if "tree" not in self._cache:
@@ -302,9 +318,9 @@ class Calibration:
             )
             in_range &= located
             shifts = {"x": dx_w, "y": dy_w}
-        sigma_cal = _interp_rows(self.local.z_nm[p], model.sigma_z[p], z)
-        m_used = np.sum(np.isfinite(model.sigma_z[p]), axis=1)
-        model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(m_used, 1))
+        z_sigma, z_count, z_slope = self._error_model("z")
+        sigma_cal = _interp_rows(self.local.z_nm, z_sigma, p, z)
+        model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(z_count[p], 1))
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             errs = tuple(spots[c].to_numpy(dtype=np.float64) for c in _ERROR_COLUMNS)
             sigma_s = shape_sigma(
@@ -317,23 +333,19 @@ class Calibration:
                 theta=theta,
                 amplitude_ref=ref,
             )
-            slope = inverse.derivative()(np.where(in_range, s, 0.0))
+            slope = z_slope[p](np.where(in_range, s, 0.0))
             z_err = np.hypot(slope * sigma_s, model_part)
         else:
             z_err = sigma_cal
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
-        for axis, delta, sig in (
-            ("x", self.local.dx, self.local.sigma_dx),
-            ("y", self.local.dy, self.local.sigma_dy),
-        ):
-            sub = delta[p]
-            shift = sub(zq) if shifts is None else shifts[axis]
-            slope = sub.derivative()(zq)
-            sigma_d = _interp_rows(self.local.z_nm[p], sig[p], z)
-            m_d = np.sum(np.isfinite(sig[p]), axis=1)
-            model_d = sigma_d * np.sqrt((sub.order + 1) / np.maximum(m_d, 1))
+        for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
+            d_sigma, d_count, d_slope = self._error_model(axis)
+            shift = delta[p](zq) if shifts is None else shifts[axis]
+            slope = d_slope[p](zq)
+            sigma_d = _interp_rows(self.local.z_nm, d_sigma, p, z)
+            model_d = sigma_d * np.sqrt((delta.order + 1) / np.maximum(d_count[p], 1))
             own = spots[f"{axis}_err"].to_numpy(float) if f"{axis}_err" in spots else sigma_d
             err = np.sqrt(own**2 + model_d**2 + (slope * z_err) ** 2)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
@@ -363,16 +375,20 @@ def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.n
     return frame["track"].map(lookup).to_numpy(dtype=np.float64)
 
 
-def _interp_rows(z_grid: np.ndarray, values: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Linear interpolation of ``values[i]`` (on ``z_grid[i]``) at ``z[i]``, row by row; NaN
-    values are bridged by their nearest finite neighbour."""
-    filled = pd.DataFrame(values.T).ffill().bfill().to_numpy().T
-    n, n_z = z_grid.shape
-    rows = np.arange(n)
-    j = np.clip(np.sum(z_grid < np.where(np.isfinite(z), z, -np.inf)[:, None], axis=1), 1, n_z - 1)
-    z0, z1 = z_grid[rows, j - 1], z_grid[rows, j]
-    w = np.clip((z - z0) / (z1 - z0), 0.0, 1.0)
-    return (1 - w) * filled[rows, j - 1] + w * filled[rows, j]
+def _interp_rows(
+    z_grid: np.ndarray, values: np.ndarray, rows: np.ndarray, z: np.ndarray
+) -> np.ndarray:
+    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``.
+
+    Every row of ``z_grid`` (n, n_z) is the same increasing grid of piezo planes minus one shift
+    (the particle's tilt plane), so each point interpolates on the first row after undoing its
+    row's shift, without gathering whole rows. Outside a row's grid the end value is held.
+    """
+    base = z_grid[0]
+    u = z + (base[0] - z_grid[:, 0])[rows]
+    j = np.clip(np.searchsorted(base, np.where(np.isfinite(u), u, -np.inf)), 1, base.size - 1)
+    w = np.clip((u - base[j - 1]) / (base[j] - base[j - 1]), 0.0, 1.0)
+    return (1 - w) * values[rows, j - 1] + w * values[rows, j]
 
 
 def _particle_table(cal: Calibration) -> pd.DataFrame:
