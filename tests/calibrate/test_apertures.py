@@ -1,6 +1,8 @@
-"""Aperture-array lattice fit: pixel size within 0.05 % with an honest uncertainty."""
+"""Aperture arrays: pixel size within 0.05 % with an honest uncertainty, and calibration through
+focus like particles (Supp. Fig. 9)."""
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
@@ -116,3 +118,84 @@ def test_errors():
     fit = ApertureLattice.from_estimate(x, y, pitch_nm=PITCH_NM)
     with pytest.raises(ValueError, match=r"`indices` to have shape \(n, 2\)"):
         fit.predict(np.zeros((3, 3), int))
+
+
+@pytest.fixture(scope="module")
+def aperture_calibration():
+    """Supp. Fig. 9's second array: sub-resolution apertures imaged through focus, calibrated
+    like particles."""
+    from latentz.calibrate import calibrate
+    from latentz.simulate import AberrationMap, aperture_array
+
+    z = np.arange(-2000.0, 2001.0, 100.0)
+    aberrations = AberrationMap.default(seed=4)
+    ds = aperture_array(
+        shape=(192, 192), z_nm=z, aberrations=aberrations, seed=4, origin=(700, 1500)
+    )
+    cal = calibrate(
+        ds.frames,
+        z,
+        camera=ds.camera,
+        field_model="nearest",
+        roi_size=21,
+        stage_offsets_px=[ds.origin[::-1]],
+    )
+    return ds, cal
+
+
+def _noise_free_rho_zero(ds, field_x, field_y):
+    """Piezo z at which the fitted ρ of a noise-free aperture image crosses zero."""
+    from latentz.fit import fit_rois
+    from latentz.simulate import render_spots
+
+    z = np.arange(-600.0, 601.0, 10.0)
+    cx, cy = int(np.rint(field_x)), int(np.rint(field_y))
+    spots = pd.DataFrame(
+        {"frame": np.arange(z.size), "x": field_x - cx + 10, "y": field_y - cy + 10, "z_nm": 0.0}
+    )
+    images, _ = render_spots(
+        spots,
+        frame_shape=(21, 21),
+        origin=(cy - 10, cx - 10),
+        z_piezo_nm=z,
+        photons=2e4,
+        diameter_nm=0.0,
+        background=50.0,
+        optics=ds.optics,
+        aberrations=ds.aberrations,
+        noise=False,
+    )
+    rho = fit_rois(images)["rho"].to_numpy()
+    k = np.flatnonzero(np.diff(np.sign(rho)) != 0)[0]
+    return z[k] - rho[k] * (z[k + 1] - z[k]) / (rho[k + 1] - rho[k])
+
+
+def test_apertures_calibrate_like_particles_and_find_where_rho_a_is_zero(aperture_calibration):
+    ds, cal = aperture_calibration
+    assert len(cal.kept) == len(cal.culled) >= 0.9 * len(ds.truth)
+    shift = cal.plane(*(cal.positions * cal.camera.pixel_size_nm).T)
+    z_zero = cal.local_z(0.0) + shift  # back on the piezo axis
+    # the inverse polynomial's error at one point: σ_z scaled by its parameters over the planes
+    # it was fitted to (the model part of Calibration.apply's z_err_nm)
+    model = cal.local.shapes["rho_A"]
+    used = np.sum(np.isfinite(model.sigma_z), axis=1)
+    sigma = cal.particles["sigma_z"].to_numpy() * np.sqrt((model.inverse.order + 1) / used)
+    chosen = np.random.default_rng(0).choice(len(cal.kept), 5, replace=False)
+    error = np.array([z_zero[i] - _noise_free_rho_zero(ds, *cal.positions[i]) for i in chosen])
+    print(
+        "z(ρ_A = 0) - noise-free ρ = 0 crossing (nm):", error.round(1), "σ", sigma[chosen].round(1)
+    )
+    # ρ_A = ρ / A_n crosses zero where ρ does
+    assert np.all(np.abs(error) <= 3 * sigma[chosen])
+    assert abs(error.mean()) <= 3 * np.sqrt(np.mean(sigma[chosen] ** 2) / chosen.size)
+
+
+def test_figure_of_where_each_array_shows_rho_a_zero(aperture_calibration, tmp_path):
+    from matplotlib.image import imread
+
+    from latentz.calibrate import figure_shape_zero
+
+    _, cal = aperture_calibration
+    path = tmp_path / "supp_fig9.png"
+    fig = figure_shape_zero({"apertures": cal}, path=path)
+    assert len(fig.axes) >= 2 and imread(path).shape[0] > 100

@@ -8,7 +8,7 @@ field models and the aperture-array magnification live beside them.
 from latentz.calibrate.apertures import ApertureLattice
 from latentz.calibrate.calibration import FIELD_MODELS, Calibration
 from latentz.calibrate.fieldmodels import FieldModel, field_errors
-from latentz.calibrate.figures import figure2, figure3, figure_focus
+from latentz.calibrate.figures import figure2, figure3, figure_focus, figure_shape_zero
 from latentz.calibrate.local import LocalOptions
 from latentz.calibrate.pipeline import calibrate, calibrate_traces
 from latentz.calibrate.polymodel import PolyModel
@@ -34,6 +34,7 @@ __all__ = [
     "figure2",
     "figure3",
     "figure_focus",
+    "figure_shape_zero",
     "find_particles",
     "shape_value",
 ]

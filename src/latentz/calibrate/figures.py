@@ -6,6 +6,8 @@ Both functions return a matplotlib Figure and, given ``path``, also write it as 
 from __future__ import annotations
 
 import os
+import warnings
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -14,7 +16,7 @@ from latentz._shared.validate import check_int
 from latentz.calibrate.calibration import PAPER_SHAPES, Calibration
 from latentz.report import save_figure
 
-__all__ = ["figure2", "figure3", "figure_focus"]
+__all__ = ["figure2", "figure3", "figure_focus", "figure_shape_zero"]
 
 _LABELS = {
     "rho": "ρ",
@@ -240,6 +242,71 @@ def figure_focus(cal: Calibration, *, path: str | os.PathLike | None = None) -> 
         ax.set_aspect("equal", adjustable="datalim")
         ax.invert_yaxis()
         fig.colorbar(sc, ax=ax, label="nm")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def figure_shape_zero(
+    calibrations: Mapping[str, Calibration],
+    *,
+    value: float = 0.0,
+    max_terms: int = 45,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Supp. Fig. 9: where each emitter array shows one shape value, across the field.
+
+    For each calibration (for example ``{"particles": cal, "apertures": cal_apertures}``): (top)
+    the z at which each kept emitter's shape parameter equals ``value`` (its inverse model; z on
+    that calibration's tilt-corrected axis), and (bottom) a Zernike model of those values (up to
+    ``max_terms`` terms, chosen by leave-one-out) over the emitters' extent. The two arrays show
+    different field dependences: the shape of an image depends on the emitter as well as on the
+    microscope.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from latentz.calibrate.fieldmodels import FieldModel
+
+    n = len(calibrations)
+    fig, axes = plt.subplots(2, n, figsize=(5.5 * n, 9.0), squeeze=False)
+    for col, (name, cal) in enumerate(calibrations.items()):
+        kept = cal.kept
+        z = cal.local_z(value)[kept]
+        x, y = cal.positions[kept].T
+        ok = np.isfinite(z)
+        px = cal.camera.pixel_size_nm / 1000
+        label = _LABELS.get(cal.shape, cal.shape)
+        ax = axes[0, col]
+        sc = ax.scatter(x[ok] * px, y[ok] * px, c=z[ok], s=14, cmap="viridis")
+        fig.colorbar(sc, ax=ax, label="z (nm)")
+        ax.set(title=f"({'ab'[col % 2]}) {name}: z at {label} = {value:g}", ylabel="y (µm)")
+        ax = axes[1, col]
+        if ok.sum() >= 4:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                model = FieldModel.from_estimate(
+                    x[ok],
+                    y[ok],
+                    z[ok],
+                    kind="zernike",
+                    field_shape=tuple(cal.options["field_shape"]),
+                    n_terms=max_terms,
+                )
+            gx, gy = np.meshgrid(
+                np.linspace(x[ok].min(), x[ok].max(), 80), np.linspace(y[ok].min(), y[ok].max(), 80)
+            )
+            surface = model(gx.ravel(), gy.ravel()).reshape(gx.shape)
+            mesh = ax.pcolormesh(gx * px, gy * px, surface, cmap="viridis", shading="auto")
+            fig.colorbar(mesh, ax=ax, label="z (nm)")
+            terms = int(model.n_terms_effective[0])
+            ax.set(title=f"({'cd'[col % 2]}) Zernike model, {terms} terms")
+        ax.set(xlabel="x (µm)", ylabel="y (µm)")
+        for ax in axes[:, col]:
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.invert_yaxis()
     fig.tight_layout()
     _save(fig, path)
     return fig
