@@ -214,12 +214,39 @@ def calibrate(
 @click.option("--chunk-frames", default=200, show_default=True, help="Frames per chunk.")
 @click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")
 @click.option("--scheduler", default=None, help="dask.distributed scheduler address.")
+@_camera_options
 @_quiet_option
 def localize(
-    movies, cal_path, out, fmt, roi_size, threshold, chunk_frames, resume, scheduler, quiet
+    movies,
+    cal_path,
+    out,
+    fmt,
+    roi_size,
+    threshold,
+    chunk_frames,
+    resume,
+    scheduler,
+    camera_file,
+    offset,
+    gain,
+    readnoise,
+    pixel_size_nm,
+    quiet,
 ) -> None:
-    """Localize every emitter in 3D with a calibration."""
+    """Localize every emitter in 3D with a calibration.
+
+    The movies are read with the calibration's camera; camera options override its values (for
+    movies recorded with another gain or offset).
+    """
     from latentz.pipeline import localize_movies
+
+    camera = {
+        "camera_file": camera_file,
+        "offset": offset,
+        "gain": gain,
+        "readnoise": readnoise,
+        "pixel_size_nm": pixel_size_nm,
+    }
 
     table = localize_movies(
         movies,
@@ -232,6 +259,7 @@ def localize(
         resume=resume,
         scheduler=scheduler,
         progress=_progress(quiet),
+        camera=camera,
     )
     click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
 

@@ -24,31 +24,37 @@ def camera_from_options(
     gain: float | None = None,
     readnoise: float | None = None,
     pixel_size_nm: float | None = None,
+    base: Camera | None = None,
 ) -> Camera | None:
     """A Camera from a JSON file and/or explicit values (explicit values win); None if neither.
 
     The JSON file holds ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm`` and optionally
-    ``flatfield``: a path to a TIFF image, relative to the JSON file.
+    ``flatfield``: a path to a TIFF image, relative to the JSON file. With ``base``, what is not
+    given keeps ``base``'s value (and the result is ``base`` if nothing is given).
     """
     values: dict = {}
     flatfield = None
+    if base is not None:
+        values = {k: v for k, v in base.as_dict().items() if k != "flatfield"}
+        flatfield = base.flatfield
     if camera_file is not None:
         path = Path(camera_file)
         if not path.exists():
             raise FileNotFoundError(f"No such camera file: {path}")
         try:
-            values = json.loads(path.read_text())
+            from_file = json.loads(path.read_text())
         except json.JSONDecodeError as exc:
             raise ValueError(f"Camera file {path.name} is not valid JSON: {exc}") from exc
-        if not isinstance(values, dict):
+        if not isinstance(from_file, dict):
             raise ValueError(f"Camera file {path.name} must hold a JSON object.")
-        unknown = set(values) - {"offset", "gain", "readnoise", "pixel_size_nm", "flatfield"}
+        unknown = set(from_file) - {"offset", "gain", "readnoise", "pixel_size_nm", "flatfield"}
         if unknown:
             raise ValueError(f"Camera file {path.name} has unknown key(s): {sorted(unknown)}.")
-        if "flatfield" in values:
+        if "flatfield" in from_file:
             import tifffile
 
-            flatfield = tifffile.imread(path.parent / values.pop("flatfield"))
+            flatfield = tifffile.imread(path.parent / from_file.pop("flatfield"))
+        values.update(from_file)
     given = {"offset": offset, "gain": gain, "readnoise": readnoise, "pixel_size_nm": pixel_size_nm}
     values.update({k: v for k, v in given.items() if v is not None})
     if not values and flatfield is None:

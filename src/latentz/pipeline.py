@@ -66,17 +66,26 @@ def localize_movies(
     resume: bool = False,
     scheduler: Any = None,
     progress: bool = False,
+    camera: dict[str, Any] | None = None,
 ) -> pd.DataFrame:
     """Localize movies in 3D with a calibration file and write one table with provenance.
 
     The movies are read lazily and processed ``chunk_frames`` at a time (memory is bounded by
     the chunk, not the movie); an interrupted run resumes with ``resume=True``. Frames are
     numbered consecutively across movies, and a ``movie`` column names the source.
+
+    ``camera`` overrides the calibration's camera for reading the movies (``camera_file``,
+    ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm``, as
+    :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
+    gain. Positions are converted to nm with the calibration's pixel size, which its models were
+    made in; a different ``pixel_size_nm`` is warned about.
     """
     import dask.array as da
 
+    from latentz._shared.sanity import check_pixel_size
     from latentz.calibrate import Calibration
     from latentz.chunked import run_chunked
+    from latentz.cli_options import camera_from_options
     from latentz.io import read_stack
     from latentz.localize import localize
 
@@ -86,6 +95,9 @@ def localize_movies(
     if fmt is None and target.suffix.lower() == ".hdf5":
         fmt = "picasso"
     cal = Calibration.load(calibration)
+    overrides = {"camera_file": None, **(camera or {})}
+    movie_camera = camera_from_options(**overrides, base=cal.camera)
+    check_pixel_size(movie_camera.pixel_size_nm, cal.camera.pixel_size_nm)
     if roi_size is None:  # the fitted widths, hence the shape value, depend on the ROI
         roi_size = cal.options.get("roi_size") or 15
     stacks = [read_stack(m) for m in movies]
@@ -93,7 +105,12 @@ def localize_movies(
         raise ValueError("Every movie must have the same frame size.")
     frames = da.concatenate(stacks, axis=0) if len(stacks) > 1 else stacks[0]
     bounds = pd.Series([s.shape[0] for s in stacks]).cumsum().to_numpy()
-    options = {"roi_size": roi_size, "threshold": threshold, "chunk_frames": chunk_frames}
+    options = {
+        "roi_size": roi_size,
+        "threshold": threshold,
+        "chunk_frames": chunk_frames,
+        "camera": movie_camera.as_dict(),
+    }
     meta = provenance({"movies": movies, "calibration": calibration}, options)
 
     def process(start: int, stop: int) -> pd.DataFrame:
@@ -101,7 +118,7 @@ def localize_movies(
         block = np.asarray(frames[start:stop].compute(scheduler="threads"))
         spots = localize(
             block,
-            camera=cal.camera,
+            camera=movie_camera,
             roi_size=roi_size,
             threshold=threshold,
             scheduler=scheduler,

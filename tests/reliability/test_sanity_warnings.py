@@ -33,10 +33,54 @@ def test_pixel_size_mismatch_warns():
     silent(check_pixel_size, 108.0, 108.0)
 
 
-def test_z_step_mismatch_warns():
-    with pytest.warns(LatentzWarning, match=r"z step 1000 nm over 31 slices spans 30000 nm"):
-        check_z_step(1000.0, 31, (-1500.0, 1500.0))
-    silent(check_z_step, 100.0, 31, (-1500.0, 1500.0))
+def test_z_step_that_the_widths_contradict_warns():
+    # widths changing by 100 nm per nm of z: the step was given in µm (0.05) for nm (50)
+    with pytest.warns(LatentzWarning, match=r"z step 0.05 nm .* 100 nm per nm .* 1.67..250 nm"):
+        check_z_step(0.05, 100.0)
+    with pytest.warns(LatentzWarning, match=r"z step 500 nm .* 0.01 nm per nm"):
+        check_z_step(500.0, 0.01)
+    silent(check_z_step, 50.0, 0.12)  # NA 0.55 in air, 1 µm particles
+    silent(check_z_step, 10.0, 0.27)  # NA 1.49 oil, SMLM 2016 beads
+    silent(check_z_step, 10.0, float("nan"))  # nothing to judge by
+
+
+def test_calibrate_warns_about_a_z_step_in_the_wrong_unit(small_microscope):
+    from latentz.calibrate import calibrate
+
+    data = small_microscope.calibration
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LatentzWarning)
+        calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
+    with pytest.warns(LatentzWarning, match=r"z step 0.1 nm makes the spot widths change"):
+        try:
+            calibrate(
+                list(data.stacks), data.z_nm / 1000, camera=data.camera, field_model="nearest"
+            )
+        except ValueError:
+            pass  # with every z a thousand times too small, later stages may give up too
+
+
+def test_localize_warns_about_a_pixel_size_unlike_the_calibrations(small_microscope, tmp_path):
+    from click.testing import CliRunner
+
+    from latentz.calibrate import calibrate
+    from latentz.cli import main
+
+    data = small_microscope.calibration
+    cal_path = tmp_path / "cal.h5"
+    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(
+        cal_path
+    )
+    movie = str(small_microscope.folder / "movie.tif")
+    out = tmp_path / "locs.parquet"
+    args = ["localize", movie, "--calibration", str(cal_path), "--quiet", "--out", str(out)]
+    with pytest.warns(LatentzWarning, match=r"Pixel size 65 nm is inconsistent .* 130 nm"):
+        result = CliRunner().invoke(main, [*args, "--pixel-size-nm", "65"])
+    assert result.exit_code == 0 and out.exists()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LatentzWarning)
+        result = CliRunner().invoke(main, [*args, "--gain", "0.5"])
+    assert result.exit_code == 0, result.output
 
 
 def test_widths_outside_calibration_warn():

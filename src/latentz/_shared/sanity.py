@@ -33,15 +33,25 @@ def check_pixel_size(pixel_nm: float, calibration_pixel_nm: float, *, rtol: floa
         )
 
 
-def check_z_step(z_step_nm: float, n_slices: int, z_range_nm: tuple[float, float]) -> None:
-    """Warn if ``n_slices`` steps of ``z_step_nm`` do not span about the expected z range (nm)."""
-    span = abs(z_step_nm) * (n_slices - 1)
-    low, high = z_range_nm
-    expected = high - low
-    if expected > 0 and not 0.5 * expected <= span <= 2.0 * expected:
+#: Plausible growth of a defocused spot's Gaussian width per unit of defocus: about
+#: tan(asin(NA / n)) / 2 far from focus, less near it; 0.02..3 spans air and oil objectives.
+DEFOCUS_RATE = (0.02, 3.0)
+
+
+def check_z_step(z_step_nm: float, width_rate: float) -> None:
+    """Warn if the spot widths change implausibly fast or slowly per nm of the given z.
+
+    ``width_rate`` is the measured change of the fitted width (nm) per nm of z when the planes
+    are ``z_step_nm`` apart; a z step off by a factor of ten, or in µm for nm, takes it outside
+    :data:`DEFOCUS_RATE`. The warning names the z step that the widths imply.
+    """
+    low, high = DEFOCUS_RATE
+    if np.isfinite(width_rate) and not low <= width_rate <= high:
+        step_low, step_high = z_step_nm * width_rate / high, z_step_nm * width_rate / low
         _warn(
-            f"z step {z_step_nm:g} nm over {n_slices} slices spans {span:g} nm; expected a span "
-            f"of {0.5 * expected:g}..{2.0 * expected:g} nm (the range {low:g}..{high:g} nm)."
+            f"z step {z_step_nm:g} nm makes the spot widths change by {width_rate:.3g} nm per nm "
+            f"of z; expected {low:g}..{high:g} for defocus, that is a z step of "
+            f"{step_low:.3g}..{step_high:.3g} nm."
         )
 
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from latentz._shared.sanity import check_z_step
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.calibrate.calibration import FIELD_MODELS, PAPER_SHAPES, Calibration
 from latentz.calibrate.culling import cull as cull_particles
@@ -216,6 +217,7 @@ def calibrate_traces(
     neighbours = check_int("neighbours", neighbours, minimum=1)
     if len(traces) == 0:
         raise ValueError("No calibration particles: the traces are empty.")
+    check_z_step(float(np.median(np.diff(traces.z_nm))), _width_rate(traces, camera))
     theta = None
     if shape in ("auto", "auto_A"):
         theta = astigmatism_angle(traces["wx"], traces["wy"], traces["rho"])
@@ -270,6 +272,22 @@ def calibrate_traces(
         scores=scores,
         options=options_used,
     )
+
+
+def _width_rate(traces: Traces, camera: Camera) -> float:
+    """Median over particles of the change of the mean fitted width (nm) between its narrowest
+    and widest converged planes, per nm of z between them (NaN if none has two such planes)."""
+    width = np.where(traces["converged"], (traces["wx"] + traces["wy"]) / 2, np.nan)
+    usable = np.sum(np.isfinite(width), axis=1) >= 2
+    if not usable.any():
+        return np.nan
+    width = width[usable]
+    low, high = np.nanargmin(width, axis=1), np.nanargmax(width, axis=1)
+    rows = np.arange(len(width))
+    span = np.abs(traces.z_nm[high] - traces.z_nm[low])
+    change = (width[rows, high] - width[rows, low]) * camera.pixel_size_nm
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return float(np.nanmedian(np.where(span > 0, change / span, np.nan)))
 
 
 def _field_shape(traces: Traces, given: Any) -> list[int]:
