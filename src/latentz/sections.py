@@ -7,7 +7,13 @@ import pandas as pd
 
 from latentz.report import Section, figure_png
 
-__all__ = ["calibration_section", "widefield_section", "localization_section", "motion_section"]
+__all__ = [
+    "calibration_section",
+    "widefield_section",
+    "emitter_arrays_section",
+    "localization_section",
+    "motion_section",
+]
 
 
 def calibration_section(cal, *, particle: int | None = None) -> Section:
@@ -44,6 +50,23 @@ def widefield_section(cal) -> Section | None:
         "Errors of the field models (Zernike residuals, interpolants by leave-one-out) against z, "
         "and the field maps of apparent lateral motion and of z at a given shape value.",
         figures={name: figure_png(fig) for name, fig in figures_of().items()},
+    )
+
+
+def emitter_arrays_section(calibrations: dict) -> Section:
+    """Supp. Fig. 9: where each emitter array (particles, apertures) shows ρ_A = 0 across the
+    field: the shape of an image depends on the emitter as well as on the microscope."""
+    from latentz.calibrate import figure_shape_zero
+
+    return Section(
+        "Emitter arrays",
+        "z at which each calibrated emitter's shape parameter is zero, for "
+        f"{' and '.join(calibrations)}, with a Zernike model of each (Supp. Fig. 9).",
+        figures={
+            "Supp. Fig. 9: shape parameter zero across the field": figure_png(
+                figure_shape_zero(calibrations)
+            )
+        },
     )
 
 
