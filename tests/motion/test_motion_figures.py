@@ -26,8 +26,23 @@ def _figures(tracks, motion):
 
 def test_every_figure_renders_and_saves(data, tmp_path):
     figures = _figures(*data)
-    assert set(figures) == {"motion", "residuals", "centroid", "play", "flexure", "out_of_plane"}
-    expected_axes = {"motion": 12, "residuals": 6, "play": 2, "flexure": 4, "out_of_plane": 1}
+    assert set(figures) == {
+        "motion",
+        "residuals",
+        "centroid",
+        "play",
+        "flexure",
+        "monte_carlo",
+        "out_of_plane",
+    }
+    expected_axes = {
+        "motion": 12,
+        "residuals": 6,
+        "play": 2,
+        "flexure": 4,
+        "monte_carlo": 9,
+        "out_of_plane": 1,
+    }
     for name, fig in figures.items():
         assert isinstance(fig, Figure)
         if name in expected_axes:

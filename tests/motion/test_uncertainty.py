@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from latentz.motion.rigid import rigid_motion
-from latentz.motion.uncertainty import motion_uncertainty
+from latentz.motion.uncertainty import motion_uncertainty, representative_simulation
 from latentz.simulate.gear_motion import gear_trajectory
 
 DOF = ["gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm"]
@@ -58,6 +58,29 @@ def test_synthetic_residuals_match_the_experimental_ones():
     # variance is of that order (the paper needed 8 % to 15 %).
     assert 0.0 < extra[0] < 0.1 and 0.0 < extra[1] < 0.1
     assert 0.05 < extra[2] < 0.2
+
+
+def test_one_representative_simulation_matches_the_experiment_and_the_uncertainty():
+    """Supp. Fig. 17's data: the synthetic residuals of one simulation have the experimental
+    RMS (the matched noise), and its errors spread like the pooled uncertainty."""
+    truth = gear_trajectory(100, seed=11)
+    tracks = _noisy(truth, np.random.default_rng(12))
+    motion = rigid_motion(tracks)
+    sim = representative_simulation(tracks, motion, seed=3)
+    residuals = sim["residuals"]
+    assert set(residuals["source"]) == {"experimental", "synthetic"}
+    rms = residuals.groupby("source")[["x_nm", "y_nm", "z_nm"]].agg(
+        lambda v: np.sqrt(np.mean(v**2))
+    )
+    # 100 transitions x 28 particles per axis: one RMS to about 1 / sqrt(2 * 2800) ~ 1.3 %
+    np.testing.assert_allclose(rms.loc["synthetic"], rms.loc["experimental"], rtol=0.06)
+    errors = sim["errors"]
+    assert len(errors) == 100 and (errors["frame"].to_numpy() == np.arange(1, 101)).all()
+    std = motion_uncertainty(tracks, motion, n_sim=400, seed=3)["std"]
+    # 100 errors per DOF: their SD is within about 4 / sqrt(2 * 100) ~ 28 % of the pooled one
+    np.testing.assert_allclose(errors[DOF].std(), std[DOF], rtol=0.3)
+    again = representative_simulation(tracks, motion, seed=3)
+    assert again["errors"].equals(errors)
 
 
 def test_uncertainty_scales_with_noise_and_is_reproducible():

@@ -20,6 +20,7 @@ from latentz.motion.analyses import (
 from latentz.motion.figures import (
     figure_centroid,
     figure_flexure,
+    figure_monte_carlo,
     figure_motion,
     figure_out_of_plane_play,
     figure_play,
@@ -39,7 +40,7 @@ from latentz.motion.rigid import (
     rotation_from_angles,
 )
 from latentz.motion.summary import drift, table1
-from latentz.motion.uncertainty import motion_uncertainty
+from latentz.motion.uncertainty import motion_uncertainty, representative_simulation
 
 __all__ = [
     "IcpResult",
@@ -50,6 +51,7 @@ __all__ = [
     "drift",
     "figure_centroid",
     "figure_flexure",
+    "figure_monte_carlo",
     "figure_motion",
     "figure_out_of_plane_play",
     "figure_play",
@@ -66,6 +68,7 @@ __all__ = [
     "planar_residuals",
     "play",
     "residual_correlation",
+    "representative_simulation",
     "residual_spectrum",
     "rigid_motion",
     "rigid_residuals",

@@ -1,4 +1,4 @@
-"""Figures of the motion analyses (paper Figs. 6–8, Supp. Figs. 15, 18, 20).
+"""Figures of the motion analyses (paper Figs. 6–8, Supp. Figs. 15, 17, 18, 20).
 
 Every function takes tables from :mod:`latentz.motion` and returns a matplotlib ``Figure`` built
 without pyplot (no global state, safe off the main thread); :func:`save_figure` writes a PNG
@@ -13,6 +13,7 @@ from matplotlib.figure import Figure
 
 from latentz.motion import analyses
 from latentz.motion.analyses import OutOfPlanePlay
+from latentz.motion.uncertainty import representative_simulation
 from latentz.report import save_figure
 
 __all__ = [
@@ -24,7 +25,10 @@ __all__ = [
     "figure_play",
     "figure_flexure",
     "figure_out_of_plane_play",
+    "figure_monte_carlo",
 ]
+
+DOF_ORDER = ("dx_nm", "dy_nm", "dz_nm", "gamma", "beta", "alpha")  # Supp. Fig. 17 (e-j)
 
 _LABELS = {
     "gamma": ("γ", "mrad", 1e3),
@@ -213,6 +217,34 @@ def figure_out_of_plane_play(result: OutOfPlanePlay, *, z_err_nm: float | None =
     return fig
 
 
+def figure_monte_carlo(simulation: dict[str, pd.DataFrame]) -> Figure:
+    """Supp. Fig. 17 (b–j): residuals of the rigid fits to the experimental and the synthetic
+    positions in x, y, z, and the errors of each degree of freedom in one simulation
+    (:func:`latentz.motion.uncertainty.representative_simulation`)."""
+    fig = Figure(figsize=(15, 6.5))
+    gs = fig.add_gridspec(2, 6)
+    residuals, errors = simulation["residuals"], simulation["errors"]
+    for col, axis in enumerate(("x_nm", "y_nm", "z_nm")):
+        ax = fig.add_subplot(gs[0, 2 * col : 2 * col + 2])
+        values = residuals[axis].to_numpy()
+        bins = np.histogram_bin_edges(values[np.isfinite(values)], bins=40)
+        for source, color in (("experimental", "tab:green"), ("synthetic", "k")):
+            part = residuals.loc[residuals["source"] == source, axis].dropna()
+            rms = float(np.sqrt(np.mean(part**2)))
+            ax.hist(part, bins=bins, histtype="step", color=color, label=f"{source}, RMS {rms:.2f}")
+        ax.set(xlabel=f"residual {axis[0]} (nm)", ylabel="count")
+        ax.legend(fontsize=8)
+    for col, dof in enumerate(DOF_ORDER):
+        label, unit, factor = _LABELS[dof]
+        ax = fig.add_subplot(gs[1, col])
+        values = errors[dof].dropna().to_numpy() * factor
+        ax.hist(values, bins=30, color="0.4")
+        ax.set(xlabel=f"error of {label} ({unit})", title=f"SD {values.std():.3g} {unit}")
+    fig.suptitle("Monte Carlo: residuals (experimental vs synthetic) and one simulation's errors")
+    fig.tight_layout()
+    return fig
+
+
 def motion_figures(
     tracks: pd.DataFrame,
     motion: pd.DataFrame,
@@ -222,8 +254,8 @@ def motion_figures(
 ) -> dict[str, Figure]:
     """Run every analysis on linked ``tracks`` and their ``motion`` and return all figures.
 
-    Keys: motion, residuals, centroid, play, flexure, and out_of_plane (only when particles
-    revisit nominal locations, i.e. more than one revolution).
+    Keys: motion, residuals, centroid, play, flexure, monte_carlo, and out_of_plane (only when
+    particles revisit nominal locations, i.e. more than one revolution).
     """
     centroids = analyses.centroid_trajectory(tracks, motion, steps_per_rev=steps_per_rev)
     planar = analyses.planar_residuals(tracks)
@@ -240,6 +272,7 @@ def motion_figures(
         "flexure": figure_flexure(
             planar, analyses.residual_correlation(tracks), rigid_spectrum, planar_spectrum
         ),
+        "monte_carlo": figure_monte_carlo(representative_simulation(tracks, motion)),
     }
     if len(motion) >= steps_per_rev + 1:
         result = analyses.out_of_plane_play(tracks, motion, steps_per_rev=steps_per_rev)

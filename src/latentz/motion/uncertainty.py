@@ -44,7 +44,7 @@ from latentz.motion.rigid import (
     tracks_to_array,
 )
 
-__all__ = ["motion_uncertainty"]
+__all__ = ["motion_uncertainty", "representative_simulation"]
 
 _CHUNK_MATRICES = 400_000
 _PILOT_RESIDUALS = 200_000
@@ -106,16 +106,33 @@ def _noise_moments(res, both):
     return mean, var
 
 
-def _pilot_rms(q_prev, q_next, mask, mean, var, scale, rng, n_pilot):
-    """RMS residual per axis of synthetic fits with explicitly drawn per-particle noise."""
-    shape = (n_pilot,) + q_next.shape
-    noise = mean + np.sqrt(var * scale) * rng.standard_normal(shape)
+def _explicit_fits(q_prev, q_next, mask, mean, var, rng, n):
+    """``n`` simulations with every particle's noise drawn explicitly: residuals (n, T, P, 3),
+    NaN where a particle is not in both frames, and the fitted R (n, T, 3, 3), t (n, T, 3)."""
+    shape = (n,) + q_next.shape
+    noise = mean + np.sqrt(var) * rng.standard_normal(shape)
     src = np.broadcast_to(q_prev, shape)
     dst = q_next + noise
     w = np.broadcast_to(mask, shape[:-1]).astype(float)
     r, t = kabsch(src, dst, weights=w)
     res = dst - np.matmul(src, np.swapaxes(r, -1, -2)) - t[..., None, :]
-    return np.sqrt((w[..., None] * res**2).sum(axis=(0, 1, 2)) / w.sum())
+    return np.where(w[..., None] > 0, res, np.nan), r, t
+
+
+def _pilot_rms(q_prev, q_next, mask, mean, var, scale, rng, n_pilot):
+    """RMS residual per axis of synthetic fits with explicitly drawn per-particle noise."""
+    res, _, _ = _explicit_fits(q_prev, q_next, mask, mean, var * scale, rng, n_pilot)
+    return np.sqrt(np.nanmean(res**2, axis=(0, 1, 2)))
+
+
+def _errors(rot, trans, truth):
+    """Errors (..., T, 6) of fitted rotations (..., T, 3, 3) and translations (..., T, 3)
+    against the true (γ, β, α, t) of each transition."""
+    gamma, beta, alpha, _ = decompose_rotation(rot)
+    g0, b0, a0, t0 = truth
+    return np.stack(
+        [gamma - g0, beta - b0, _wrap(alpha - a0), *np.moveaxis(trans - t0, -1, 0)], axis=-1
+    )
 
 
 def _statistics(q_prev, q_next, mask, mean, var):
@@ -142,11 +159,7 @@ def _simulate_chunk(rng, n_sim, stats, truth):
     h = h0[:, None] + np.transpose(s[..., :3], (0, 2, 3, 1))  # H[k, l] += Σ a_k n_l
     rot = rotations_from_covariance(h).reshape(h.shape)
     trans = b_bar[:, None] + np.swapaxes(s[..., 3], 1, 2) - np.einsum("tsij,tj->tsi", rot, a_bar)
-    gamma, beta, alpha, _ = decompose_rotation(rot)
-    g0, b0, a0, t0 = (np.asarray(v)[:, None] for v in truth)
-    errors = np.stack(
-        [gamma - g0, beta - b0, _wrap(alpha - a0), *np.moveaxis(trans - t0, -1, 0)], axis=-1
-    )
+    errors = _errors(rot, trans, tuple(np.asarray(v)[:, None] for v in truth))
     return np.swapaxes(errors, 0, 1)
 
 
@@ -247,6 +260,39 @@ def motion_uncertainty(
     """
     n_sim = check_int("n_sim", n_sim, minimum=2)
     seed = check_int("seed", seed, minimum=0)
+    model = _noise_model(tracks, motion, seed)
+    chunk = max(1, _CHUNK_MATRICES // model["q_prev"].shape[0])
+    starts = range(0, n_sim, chunk)
+    stats = _statistics(
+        model["q_prev"], model["q_next"], model["mask"], model["mean"], model["var"]
+    )
+    accumulator = None
+    for start, chunk_seed in zip(starts, model["seeds"].spawn(len(starts)), strict=True):
+        rng = np.random.default_rng(chunk_seed)
+        err = _simulate_chunk(rng, min(chunk, n_sim - start), stats, model["truth"])
+        accumulator = accumulator or _ErrorStats(err)
+        accumulator.add(err)
+    if per_transition:
+        table = pd.DataFrame(accumulator.std_per_transition(), columns=list(DOF_COLUMNS))
+        table.insert(0, "frame", model["frames"])
+    else:
+        table = pd.DataFrame(
+            {"sigma": accumulator.coverage_halfwidth(), "std": accumulator.pooled_std()},
+            index=pd.Index(DOF_COLUMNS, name="dof"),
+        )
+    table.attrs.update(
+        experimental_rms_nm=model["experimental_rms"].tolist(),
+        synthetic_rms_nm=model["synthetic_rms"].tolist(),
+        extra_variance=(model["scale"] - 1.0).tolist(),
+        n_sim=n_sim,
+    )
+    return table
+
+
+def _noise_model(tracks: pd.DataFrame, motion: pd.DataFrame | None, seed: int) -> dict:
+    """Steps 1, 2 and 4 of the module notes: the replayed (true) positions of every valid
+    transition, the per-particle noise scaled to match the experimental residuals, and the seed
+    sequence for the simulations."""
     frames, _, pos = tracks_to_array(tracks)
     if frames.size < 2:
         raise ValueError(f"Expected `tracks` to span at least 2 frames, got {frames.size}.")
@@ -259,41 +305,59 @@ def motion_uncertainty(
     mean, var = _noise_moments(res, both)
     synthetic = _replay(pos, rot, trans, valid)
     q_prev, q_next, mask = synthetic[:-1][valid], synthetic[1:][valid], both[valid]
-    rot_v, trans_v = rot[valid], trans[valid]
-    g0, b0, a0, _ = decompose_rotation(rot_v)
-    truth = (g0, b0, a0, trans_v)
-
-    n_t = q_prev.shape[0]
-    chunk = max(1, _CHUNK_MATRICES // n_t)
-    starts = range(0, n_sim, chunk)
-    pilot_seed, *chunk_seeds = np.random.SeedSequence(seed).spawn(len(starts) + 1)
+    g0, b0, a0, _ = decompose_rotation(rot[valid])
+    pilot_seed, seeds = np.random.SeedSequence(seed).spawn(2)
     pilot_rng = np.random.default_rng(pilot_seed)
     experimental = np.sqrt(np.nanmean(res[both] ** 2, axis=0))
     n_pilot = int(np.clip(_PILOT_RESIDUALS // mask.sum(), 2, 32))
     # The fitted residual variance is linear in the noise variance: one rescaling matches it.
     first = _pilot_rms(q_prev, q_next, mask, mean, var, np.ones(3), pilot_rng, n_pilot)
     scale = np.where(first > 0, (experimental / first) ** 2, 1.0)
-    synthetic_rms = _pilot_rms(q_prev, q_next, mask, mean, var, scale, pilot_rng, n_pilot)
+    return {
+        "frames": frames[1:][valid],
+        "q_prev": q_prev,
+        "q_next": q_next,
+        "mask": mask,
+        "mean": mean,
+        "var": var * scale,
+        "scale": scale,
+        "truth": (g0, b0, a0, trans[valid]),
+        "residuals": res[valid],
+        "experimental_rms": experimental,
+        "synthetic_rms": _pilot_rms(q_prev, q_next, mask, mean, var, scale, pilot_rng, n_pilot),
+        "seeds": seeds,
+    }
 
-    stats = _statistics(q_prev, q_next, mask, mean, var * scale)
-    accumulator = None
-    for start, chunk_seed in zip(starts, chunk_seeds, strict=True):
-        rng = np.random.default_rng(chunk_seed)
-        err = _simulate_chunk(rng, min(chunk, n_sim - start), stats, truth)
-        accumulator = accumulator or _ErrorStats(err)
-        accumulator.add(err)
-    if per_transition:
-        table = pd.DataFrame(accumulator.std_per_transition(), columns=list(DOF_COLUMNS))
-        table.insert(0, "frame", frames[1:][valid])
-    else:
-        table = pd.DataFrame(
-            {"sigma": accumulator.coverage_halfwidth(), "std": accumulator.pooled_std()},
-            index=pd.Index(DOF_COLUMNS, name="dof"),
-        )
-    table.attrs.update(
-        experimental_rms_nm=experimental.tolist(),
-        synthetic_rms_nm=synthetic_rms.tolist(),
-        extra_variance=(scale - 1.0).tolist(),
-        n_sim=n_sim,
+
+def representative_simulation(
+    tracks: pd.DataFrame, motion: pd.DataFrame | None = None, *, seed: int = 0
+) -> dict[str, pd.DataFrame]:
+    """One simulation of :func:`motion_uncertainty`'s Monte Carlo, drawn explicitly (Supp. Fig. 17).
+
+    Returns
+    -------
+    dict
+        ``residuals``: the rigid-fit residuals of the experimental and of the synthetic
+        positions, columns ``source`` ("experimental", "synthetic"), ``x_nm``, ``y_nm``,
+        ``z_nm``; ``errors``: one row per transition, ``frame`` and the error of each degree of
+        freedom (rad, nm) in this simulation.
+    """
+    seed = check_int("seed", seed, minimum=0)
+    model = _noise_model(tracks, motion, seed)
+    rng = np.random.default_rng(model["seeds"])
+    res, rot, trans = _explicit_fits(
+        model["q_prev"], model["q_next"], model["mask"], model["mean"], model["var"], rng, 1
     )
-    return table
+    columns = ["x_nm", "y_nm", "z_nm"]
+    experimental = model["residuals"][model["mask"]]
+    synthetic = res[0][model["mask"]]
+    residuals = pd.concat(
+        [
+            pd.DataFrame(experimental, columns=columns).assign(source="experimental"),
+            pd.DataFrame(synthetic, columns=columns).assign(source="synthetic"),
+        ],
+        ignore_index=True,
+    )
+    errors = pd.DataFrame(_errors(rot[0], trans[0], model["truth"]), columns=list(DOF_COLUMNS))
+    errors.insert(0, "frame", model["frames"])
+    return {"residuals": residuals[["source", *columns]], "errors": errors}
