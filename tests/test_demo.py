@@ -6,6 +6,7 @@ import io
 import re
 
 import pandas as pd
+from browser import chromium, images_loaded
 from PIL import Image
 
 from latentz.demo import run_demo
@@ -18,6 +19,8 @@ def test_quick_demo_writes_report_and_recovers_truth(tmp_path):
     assert len(images) >= 10  # PSFs, Figs. 2-3, focus, widefield, localization, motion figures
     for data in images:
         Image.open(io.BytesIO(base64.b64decode(data))).verify()
+    if chromium() is not None:  # opened in a browser, with no network: every image shows
+        assert images_loaded(tmp_path / "report.html", tmp_path) == (len(images), len(images))
     assert "Table 1" in page and "http://" not in page and "https://" not in page
     # the aperture array recovers the true 129.3 nm pixel within 0.05 %
     pixel = float(re.search(r"pixel size ([\d.]+)", lines[0]).group(1))

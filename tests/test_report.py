@@ -7,6 +7,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+import pytest  # noqa: E402
+from browser import chromium, images_loaded  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from latentz.report import Section, figure_png, write_report  # noqa: E402
@@ -45,3 +47,14 @@ def test_report_escapes_text(tmp_path):
     path = write_report([Section("<b>x</b>", "a < b")], tmp_path / "r.html")
     page = path.read_text()
     assert "&lt;b&gt;x&lt;/b&gt;" in page and "a &lt; b" in page
+
+
+def test_report_opens_in_headless_chromium_with_every_image(tmp_path):
+    if chromium() is None:
+        pytest.skip("headless Chromium is not installed (apt-get install chromium)")
+    sections = [
+        Section("A", "x", figures={"one": figure_png(_figure()), "two": figure_png(_figure())}),
+        Section("B", tables={"t": pd.DataFrame({"a": [1]})}, figures={"3": figure_png(_figure())}),
+    ]
+    path = write_report(sections, tmp_path / "report.html")
+    assert images_loaded(path, tmp_path) == (3, 3)

@@ -45,7 +45,7 @@ class DemoSize:
 #: study: 2.3 nm lateral error at 21 px against 4.2 nm at 15 px).
 ROI_PX = 21
 
-FULL = DemoSize(2048, 16, 320, 3000.0, 50.0, 64, 28, 328.0, 5, 10000, "zernike")
+FULL = DemoSize(2048, 16, 320, 3000.0, 50.0, 72, 28, 328.0, 5, 10000, "zernike")
 QUICK = DemoSize(1024, 4, 80, 2000.0, 100.0, 6, 12, 120.0, 3, 500, "zernike")
 
 

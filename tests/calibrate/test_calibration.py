@@ -379,5 +379,5 @@ def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
     rows = rng.integers(0, 30, 500)
     z = rng.uniform(-3600, 3600, 500)  # some beyond a row's grid: the end value is held
     z[:5] = np.nan
-    expected = np.array([np.interp(zk, grid[r], values[r]) for r, zk in zip(rows, z)])
+    expected = np.array([np.interp(zk, grid[r], values[r]) for r, zk in zip(rows, z, strict=True)])
     np.testing.assert_allclose(_interp_rows(grid, values, rows, z), expected, rtol=1e-12)
