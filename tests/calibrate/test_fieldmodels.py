@@ -326,3 +326,23 @@ def test_bad_input_errors():
         field_errors("zernike")
     with pytest.raises(ValueError, match="`circle_radius_px` to be finite and > 0"):
         field_errors(model, circle_radius_px=-1.0)
+
+
+@pytest.mark.parametrize("kind", ["natural", "nearest", "zernike"])
+def test_per_point_columns_equal_picking_from_every_column(kind):
+    """Evaluating each point in its own columns (what apply does, with weights shared by the
+    columns of one validity pattern) gives what evaluating every column and picking gives."""
+    rng = np.random.default_rng(31)
+    x, y = _particles(120, seed=30)
+    values = np.column_stack([_smooth(x, y) * k for k in (1.0, 2.0, -1.0, 0.5)])
+    valid = np.ones_like(values, dtype=bool)
+    valid[:40, 1] = False  # columns 1 and 3 use other particles than columns 0 and 2
+    valid[60:, 3] = False
+    model = FieldModel.from_estimate(
+        x, y, np.where(valid, values, 0.0), kind=kind, field_shape=SHAPE, valid=valid, n_terms=15
+    )
+    qx, qy = rng.uniform(10, SHAPE[1] - 10, 300), rng.uniform(10, SHAPE[0] - 10, 300)
+    cols = rng.integers(0, 4, (300, 2))
+    every = model(qx, qy)
+    picked = np.take_along_axis(every, cols, axis=1)
+    np.testing.assert_allclose(model(qx, qy, columns=cols), picked, rtol=1e-12, atol=1e-12)

@@ -461,11 +461,8 @@ class FieldModel:
             self._eval_zernike(x, y, idx, cols, out, design)
         elif design is not None:
             raise TypeError(f"`design` applies to Zernike models only, not {self.kind!r}.")
-        elif cols is None:
-            self._eval_interpolant(x, y, idx, None, out)
         else:
-            for k in range(cols.shape[1]):
-                self._eval_interpolant(x, y, idx, cols[:, k], out[:, k])
+            self._eval_interpolant(x, y, idx, cols, out)
         if cols is not None:
             return out.reshape(shape_out)
         return out[:, 0] if self.options["squeeze"] else out
@@ -492,25 +489,32 @@ class FieldModel:
                 out[sel] = np.einsum("ij,ikj->ik", block, coef_rows[cols[sel]])
 
     def _eval_interpolant(self, x, y, idx, cols, out) -> None:
+        """Fill ``out`` at points ``idx``: every column (``cols`` None) or, per point, the
+        columns ``cols[i, :]``. The weights of each validity pattern are computed once, for
+        every point that needs that pattern in any of its columns."""
         queries = np.column_stack([x, y])
         for k, pattern in enumerate(self._patterns):
-            in_pattern = np.flatnonzero(self._pattern_of == k)
-            sel = idx if cols is None else idx[self._pattern_of[cols[idx]] == k]
             rows = np.flatnonzero(pattern)
+            uses = None if cols is None else self._pattern_of[cols[idx]] == k  # (points, k)
+            sel = idx if cols is None else idx[uses.any(axis=1)]
             if sel.size == 0 or rows.size == 0:
                 continue
             points = np.column_stack([self.x_px[rows], self.y_px[rows]])
             pi, pj, w, ok = _WEIGHTS[self.kind](points, queries[sel])
             if cols is None:
+                in_pattern = np.flatnonzero(self._pattern_of == k)
                 weights = csr_matrix((w, (pi, pj)), shape=(sel.size, rows.size))
                 block = weights @ self.values[np.ix_(rows, in_pattern)]
                 block[~ok] = np.nan
                 out[np.ix_(sel, in_pattern)] = block
-            else:
-                contrib = w * self.values[rows[pj], cols[sel][pi]]
-                res = np.bincount(pi, contrib, minlength=sel.size).astype(np.float64)
+                continue
+            for c in range(cols.shape[1]):
+                here = self._pattern_of[cols[sel, c]] == k
+                entry = here[pi]
+                contrib = w[entry] * self.values[rows[pj[entry]], cols[sel[pi[entry]], c]]
+                res = np.bincount(pi[entry], contrib, minlength=sel.size).astype(np.float64)
                 res[~ok] = np.nan
-                out[sel] = res
+                out[sel[here], c] = res[here]
 
     # ---------------------------------------------------------------- errors
     def residuals(self, *, leave_one_out: bool | None = None) -> np.ndarray:
