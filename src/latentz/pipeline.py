@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -82,7 +83,7 @@ def localize_movies(
     """
     import dask.array as da
 
-    from latentz._shared.sanity import check_pixel_size
+    from latentz._shared.sanity import LatentzWarning, check_offset, check_pixel_size, check_widths
     from latentz.calibrate import Calibration
     from latentz.chunked import run_chunked
     from latentz.cli_options import camera_from_options
@@ -112,19 +113,23 @@ def localize_movies(
         "camera": movie_camera.as_dict(),
     }
     meta = provenance({"movies": movies, "calibration": calibration}, options)
+    # the physical sanity checks speak once for the run, not once per chunk
+    check_offset(movie_camera.offset, float(np.median(np.asarray(frames[0][::4, ::4]))))
 
     def process(start: int, stop: int) -> pd.DataFrame:
         # read the chunk here (the file is open in this process), fit it where `scheduler` says
         block = np.asarray(frames[start:stop].compute(scheduler="threads"))
-        spots = localize(
-            block,
-            camera=movie_camera,
-            roi_size=roi_size,
-            threshold=threshold,
-            scheduler=scheduler,
-        )
-        spots["frame"] = spots["frame"] + start
-        located = cal.apply(spots)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LatentzWarning)
+            spots = localize(
+                block,
+                camera=movie_camera,
+                roi_size=roi_size,
+                threshold=threshold,
+                scheduler=scheduler,
+            )
+            spots["frame"] = spots["frame"] + start
+            located = cal.apply(spots)
         located.insert(
             1,
             "movie",
@@ -144,6 +149,7 @@ def localize_movies(
         metadata=meta,
         progress=progress,
     )
+    check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
     if fmt == "picasso":
         from latentz.picasso_format import write_picasso
 

@@ -87,3 +87,25 @@ def test_widths_outside_calibration_warn():
     with pytest.warns(LatentzWarning, match=r"1 spot widths \(e.g. 9 px\).*expected 0.6..5 px"):
         check_widths(np.array([1.3, 1.5, 9.0, np.nan]), (1.2, 2.5))
     silent(check_widths, np.array([1.3, 2.4, np.nan]), (1.2, 2.5))
+
+
+def test_localize_warns_once_per_run_not_once_per_chunk(small_microscope, tmp_path):
+    from click.testing import CliRunner
+
+    from latentz.calibrate import calibrate
+    from latentz.cli import main
+
+    data = small_microscope.calibration
+    cal_path = tmp_path / "cal.h5"
+    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(
+        cal_path
+    )
+    movie = str(small_microscope.folder / "movie.tif")
+    out = tmp_path / "locs.parquet"
+    args = ["localize", movie, "--calibration", str(cal_path), "--quiet", "--out", str(out)]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = CliRunner().invoke(main, [*args, "--chunk-frames", "1", "--offset", "60000"])
+    assert result.exit_code == 0, result.output
+    offsets = [w for w in caught if "Camera offset 60000 ADU" in str(w.message)]
+    assert len(offsets) == 1  # the movie has several one-frame chunks
