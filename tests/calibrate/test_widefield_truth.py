@@ -32,7 +32,10 @@ def _summary(study, truth="errors"):
 
 def test_zernike_localizes_within_2_nm_laterally_and_40_nm_axially(study):
     summary = _summary(study)
-    print("\nagainst the apparent position at best focus (paper's truth):\n", summary.round(2).to_string())
+    print(
+        "\nagainst the apparent position at best focus (paper's truth):\n",
+        summary.round(2).to_string(),
+    )
     print("against the geometric position:\n", _summary(study, "geometric").round(2).to_string())
     row = summary.loc["zernike"]
     assert row["n"] >= 3000 and row["in_range"] >= 0.95
