@@ -20,7 +20,7 @@ def test_evaluate_reports_every_model_axis_and_region(small_microscope):
     assert lateral.max() < 20.0
     assert lateral["nearest"] >= lateral["natural"]
     figures = cal.evaluate_figures()
-    assert len(figures) == 2
+    assert len(figures) == 3
 
 
 def test_leave_one_out_of_the_interpolants_equals_a_refit_without_the_particle(small_microscope):
@@ -41,3 +41,17 @@ def test_leave_one_out_of_the_interpolants_equals_a_refit_without_the_particle(s
     expected = np.sqrt(np.nanmean(resid**2))
     got = errors[(errors["axis"] == "x")]["rms_square"].iloc[1]
     np.testing.assert_allclose(got, expected, rtol=1e-9)
+
+
+def test_field_errors_from_precomputed_residuals_are_the_same():
+    import pandas as pd
+
+    from latentz.calibrate.fieldmodels import FieldModel, field_errors
+
+    rng = np.random.default_rng(8)
+    x, y = rng.uniform(0, 199, (2, 60))
+    values = np.column_stack([np.sin(x / 40) + y / 100, np.cos(y / 30)])
+    model = FieldModel.from_estimate(x, y, values, kind="natural", field_shape=(200, 200))
+    pd.testing.assert_frame_equal(
+        field_errors(model), field_errors(model, residuals=model.residuals())
+    )

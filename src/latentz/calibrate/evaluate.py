@@ -60,10 +60,16 @@ def evaluate(
         the square field and the circular subset ``n_*``, ``rms_*`` (nm), ``kurtosis_*``
         (excess) and ``kurtosis_err_*``.
     """
+    return _evaluate(cal, kinds, n_z, n_s, leave_one_out)[0]
+
+
+def _evaluate(cal, kinds, n_z, n_s, leave_one_out):
+    """:func:`evaluate`'s table, and each model's residuals (n_kept, columns) in nm by
+    ``(model, axis)``."""
     columns = _columns(cal, n_z, n_s)
     x, y = cal.positions[cal.kept].T
     shape = tuple(cal.options["field_shape"])
-    parts = []
+    parts, residuals = [], {}
     for kind in kinds:
         for axis, (values, z_of_column) in columns.items():
             valid = np.isfinite(values)
@@ -78,20 +84,23 @@ def evaluate(
                     valid=valid,
                     n_terms=cal.options.get("n_terms", 400),
                 )
-            table = field_errors(model, leave_one_out=leave_one_out)
+            resid = model.residuals(leave_one_out=leave_one_out)
+            residuals[kind, axis] = resid
+            table = field_errors(model, leave_one_out=leave_one_out, residuals=resid)
             table.insert(0, "z_nm", z_of_column[table["column"]])
             table.insert(0, "axis", axis)
             table.insert(0, "model", kind)
             parts.append(table.drop(columns="column"))
-    return pd.concat(parts, ignore_index=True)
+    return pd.concat(parts, ignore_index=True), residuals
 
 
-def evaluate_figures(cal: Calibration, errors: pd.DataFrame | None = None) -> dict[str, Any]:
-    """Fig. 5 (RMS error against z per model and axis, square and circle) and Fig. 4 (vector
-    map of the apparent lateral motion between two z, and the surface of best focus)."""
+def evaluate_figures(cal: Calibration) -> dict[str, Any]:
+    """Fig. 5 (RMS error against z per model and axis, square and circle), Supp. Figs. 11–14
+    (error maps and histograms with their excess kurtosis) and Fig. 4 (vector map of the
+    apparent lateral motion between two z, and the surface of best focus)."""
     import matplotlib.pyplot as plt
 
-    errors = evaluate(cal) if errors is None else errors
+    errors, residuals = _evaluate(cal, FIELD_MODELS, 41, 81, None)
     fig5, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
     for col, axis in enumerate("xyz"):
         for row, region in enumerate(("square", "circle")):
@@ -129,4 +138,62 @@ def evaluate_figures(cal: Calibration, errors: pd.DataFrame | None = None) -> di
     b.set(title="field curvature", xlabel="x (px)", aspect="equal")
     b.invert_yaxis()
     fig4.tight_layout()
-    return {"Fig. 5: widefield errors against z": fig5, "Fig. 4: field maps": fig4}
+    return {
+        "Fig. 5: widefield errors against z": fig5,
+        "Supp. Figs. 11-14: error maps and histograms": _figure_error_distributions(
+            cal, errors, residuals
+        ),
+        "Fig. 4: field maps": fig4,
+    }
+
+
+def _figure_error_distributions(cal: Calibration, errors: pd.DataFrame, residuals: dict) -> Any:
+    """Per model (rows): the map of each particle's RMS z error over the columns (Supp. Figs.
+    11, 13), and histograms of the x, y, z errors of the square field and of the circular subset
+    (Supp. Figs. 12, 14), labelled with the mean over z of each column's excess kurtosis and its
+    standard error, as the paper reports it (pooling columns of different spread would inflate
+    it)."""
+    import matplotlib.pyplot as plt
+
+    x, y = cal.positions[cal.kept].T
+    h, w = cal.options["field_shape"]
+    circle = np.hypot(x - (w - 1) / 2, y - (h - 1) / 2) <= min(h, w) / 2
+    kinds = sorted({kind for kind, _ in residuals}, key=FIELD_MODELS.index)
+    fig, axes = plt.subplots(len(kinds), 4, figsize=(17, 3.6 * len(kinds)), squeeze=False)
+    px = cal.camera.pixel_size_nm / 1000
+    for row, kind in enumerate(kinds):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per_particle = np.sqrt(np.nanmean(residuals[kind, "z"] ** 2, axis=1))
+        ax = axes[row, 0]
+        shown = np.isfinite(per_particle)
+        sc = ax.scatter(x[shown] * px, y[shown] * px, c=per_particle[shown], s=10, cmap="magma")
+        fig.colorbar(sc, ax=ax, label="RMS z error (nm)")
+        ax.set(title=f"{kind}: z error per particle", xlabel="x (µm)", ylabel="y (µm)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.invert_yaxis()
+        for col, axis in enumerate("xyz", start=1):
+            ax = axes[row, col]
+            resid = residuals[kind, axis]
+            table = errors[(errors["model"] == kind) & (errors["axis"] == axis)]
+            for region, rows, color in (("square", slice(None), "0.5"), ("circle", circle, "C0")):
+                values = resid[rows].ravel()
+                values = values[np.isfinite(values)]
+                per_column = table[f"kurtosis_{region}"].dropna()
+                if values.size < 4 or per_column.empty:
+                    continue
+                spread = per_column.std() / np.sqrt(per_column.size)
+                ax.hist(
+                    values,
+                    bins=60,
+                    range=tuple(np.percentile(values, [0.5, 99.5])),
+                    histtype="step",
+                    color=color,
+                    density=True,
+                    label=f"{region}: kurtosis {per_column.mean():+.2f} ± {spread:.2f}",
+                )
+            ax.set(title=f"{kind}: {axis} errors", xlabel=f"{axis} error (nm)")
+            ax.legend(fontsize=8)
+    fig.suptitle("Widefield errors (Zernike: fit residuals; interpolants: leave-one-out)")
+    fig.tight_layout()
+    return fig

@@ -676,6 +676,7 @@ def field_errors(
     *,
     circle_radius_px: float | None = None,
     leave_one_out: bool | None = None,
+    residuals: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """Widefield calibration errors per column: RMS and excess kurtosis of the residuals.
 
@@ -690,6 +691,8 @@ def field_errors(
         Radius of the circular subset, pixels; default half the shorter side of the field.
     leave_one_out : bool, optional
         Passed to :meth:`FieldModel.residuals`; True gives honest Zernike errors.
+    residuals : ndarray (n, m), optional
+        ``model.residuals(leave_one_out=...)`` if already computed.
 
     Returns
     -------
@@ -706,7 +709,9 @@ def field_errors(
     h, w = model.field_shape
     radius = min(h, w) / 2.0 if circle_radius_px is None else circle_radius_px
     radius = check_positive("circle_radius_px", radius)
-    resid = model.residuals(leave_one_out=leave_one_out).reshape(model.n_particles, -1)
+    if residuals is None:
+        residuals = model.residuals(leave_one_out=leave_one_out)
+    resid = np.asarray(residuals).reshape(model.n_particles, -1)
     r = np.hypot(model.x_px - (w - 1) / 2.0, model.y_px - (h - 1) / 2.0)
     table: dict[str, Any] = {"column": np.arange(model.n_columns)}
     for region, rows in (("square", np.ones_like(r, bool)), ("circle", r <= radius)):
