@@ -39,8 +39,6 @@ __all__ = [
     "error_figure",
 ]
 
-AXES = ("x", "y", "z")
-
 
 def focal_plane(truth: pd.DataFrame) -> np.ndarray:
     """``(c0, cx, cy)`` of the least-squares plane ``z = c0 + cx x + cy y`` (x, y in field

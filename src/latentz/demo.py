@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from latentz.accuracy import error_figure, focal_plane
+from latentz.accuracy import error_figure, focal_plane, rmse
 from latentz.report import Section, figure_png, write_report
 
 __all__ = ["DemoSize", "run_demo"]
@@ -123,9 +123,7 @@ def _rms_after_scale(errors: pd.DataFrame, prefix: str = "") -> tuple[float, flo
     return float(np.sqrt(np.mean(resid[:n] ** 2))), float(np.sqrt(np.mean(resid[n:] ** 2)))
 
 
-def _rms(values: pd.Series, *, centred: bool = False) -> float:
-    """Root mean square; ``centred``: after removing the mean (one global offset)."""
-    values = values - values.mean() if centred else values
+def _rms(values: pd.Series) -> float:
     return float(np.sqrt(np.mean(np.square(values))))
 
 
@@ -269,11 +267,11 @@ def run_demo(
     write_table(errors, out / "errors_vs_truth.csv")
     in_range = float(locs["in_range"].mean())
     scaled, raw_scaled = _rms_after_scale(errors), _rms_after_scale(errors, "raw_")
-    rms = {c: _rms(errors[c], centred=True) for c in errors.columns if "err_" in c}
+    rms = rmse(errors)
     log.append(
         f"gear localizations: {len(locs)} ({100 * in_range:.1f} % in range); RMS error after "
-        f"one offset: x {rms['err_x_nm']:.1f}, y {rms['err_y_nm']:.1f}, z {rms['err_z_nm']:.1f} "
-        f"nm (uncorrected x {rms['raw_err_x_nm']:.1f}, y {rms['raw_err_y_nm']:.1f} nm); after "
+        f"one offset: x {rms['rmse_x_nm']:.1f}, y {rms['rmse_y_nm']:.1f}, z {rms['rmse_z_nm']:.1f} "
+        f"nm (uncorrected x {rms['raw_rmse_x_nm']:.1f}, y {rms['raw_rmse_y_nm']:.1f} nm); after "
         f"also removing the magnification error: x {scaled[0]:.1f}, y {scaled[1]:.1f} nm "
         f"(uncorrected x {raw_scaled[0]:.1f}, y {raw_scaled[1]:.1f} nm)"
     )

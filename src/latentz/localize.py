@@ -25,12 +25,18 @@ from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
 from latentz.io import as_frames
 
-__all__ = ["localize", "LOCALIZE_COLUMNS"]
+__all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
 #: Columns of the table returned by `localize`, in order.
 LOCALIZE_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
 _LOCAL_SCHEDULERS = ("threads", "processes", "synchronous")
 _CHUNK_BYTES = 64 * 2**20
+
+
+def check_camera_offset(camera: Camera, movie: Any) -> None:
+    """Warn if the camera offset (ADU) is above the median of the movie's first frame (every
+    fourth pixel): an offset above most pixels means the wrong camera settings."""
+    check_offset(camera.offset, float(np.median(np.asarray(movie[0][::4, ::4]))))
 
 
 def _localize_chunk(
@@ -61,13 +67,7 @@ def _localize_chunk(
     new_row0, new_col0, new_edge = roi_corners(rows, cols, roi_size, photons.shape[-2:])
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
-        rois = cut_rois(
-            photons[None] if photons.ndim == 2 else photons,
-            found.frame[moved],
-            new_row0[moved],
-            new_col0[moved],
-            roi_size,
-        )
+        rois = cut_rois(photons, found.frame[moved], new_row0[moved], new_col0[moved], roi_size)
         refit = fit_arrays(rois, method=method, readnoise=readnoise)
         fit = type(fit)(*(_replace_rows(a, b, moved) for a, b in zip(fit, refit, strict=True)))
         row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
@@ -171,8 +171,8 @@ def localize(
         raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
     check_choice("method", method, METHODS)
     roi_size = check_int("roi_size", roi_size, minimum=3)
-    if camera is not None:  # an offset above most pixels means the wrong camera settings
-        check_offset(camera.offset, float(np.median(np.asarray(movie[0][::4, ::4]))))
+    if camera is not None:
+        check_camera_offset(camera, movie)
     if chunk_frames is None:
         chunk_frames = max(1, _CHUNK_BYTES // (8 * movie.shape[1] * movie.shape[2]))
     chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)

@@ -21,6 +21,7 @@ from latentz._shared.validate import check_choice
 
 __all__ = [
     "file_digest",
+    "stamp",
     "provenance",
     "localize_movies",
     "track_file",
@@ -38,6 +39,14 @@ def file_digest(path: str | os.PathLike, *, block: int = 1 << 20) -> str:
     return digest.hexdigest()
 
 
+def stamp() -> dict[str, str]:
+    """The latentz version and the date and time now (UTC, ISO 8601), for output metadata."""
+    return {
+        "latentz_version": __version__,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    }
+
+
 def provenance(inputs: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
     """Metadata that every output carries: inputs (name, size, SHA-256), options, version, date."""
     described = {}
@@ -47,12 +56,7 @@ def provenance(inputs: dict[str, Any], options: dict[str, Any]) -> dict[str, Any
             {"name": str(p), "bytes": Path(p).stat().st_size, "sha256": file_digest(p)}
             for p in items
         ]
-    return {
-        "latentz_version": __version__,
-        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "inputs": described,
-        "options": options,
-    }
+    return {**stamp(), "inputs": described, "options": options}
 
 
 def localize_movies(
@@ -83,12 +87,12 @@ def localize_movies(
     """
     import dask.array as da
 
-    from latentz._shared.sanity import LatentzWarning, check_offset, check_pixel_size, check_widths
+    from latentz._shared.sanity import LatentzWarning, check_pixel_size, check_widths
     from latentz.calibrate import Calibration
     from latentz.chunked import run_chunked
     from latentz.cli_options import camera_from_options
     from latentz.io import read_stack
-    from latentz.localize import localize
+    from latentz.localize import check_camera_offset, localize
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
@@ -114,7 +118,7 @@ def localize_movies(
     }
     meta = provenance({"movies": movies, "calibration": calibration}, options)
     # the physical sanity checks speak once for the run, not once per chunk
-    check_offset(movie_camera.offset, float(np.median(np.asarray(frames[0][::4, ::4]))))
+    check_camera_offset(movie_camera, frames)
 
     def process(start: int, stop: int) -> pd.DataFrame:
         # read the chunk here (the file is open in this process), fit it where `scheduler` says

@@ -162,13 +162,11 @@ def save(cal, path: str | os.PathLike, *, provenance: dict[str, Any] | None = No
     information such as input file names and hashes)."""
     import h5py
 
-    from latentz.pipeline import provenance as describe
+    from latentz.pipeline import stamp
 
     arrays, attrs = to_arrays(cal)
-    record = {**cal.provenance, **(provenance or {})}
-    now = describe({}, {})
-    for key in ("latentz_version", "created"):  # unless the calibration already records them
-        record.setdefault(key, now[key])
+    # the version and date of this save, unless the calibration already records them
+    record = {**stamp(), **cal.provenance, **(provenance or {})}
     attrs = {**attrs, "provenance": record}
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         for key, value in arrays.items():

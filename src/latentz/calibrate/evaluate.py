@@ -17,12 +17,9 @@ import pandas as pd
 
 from latentz.calibrate.calibration import FIELD_MODELS, Calibration
 from latentz.calibrate.fieldmodels import FieldModel, field_errors
-from latentz.calibrate.widefield import covered_span
+from latentz.calibrate.widefield import MIN_PARTICLES, covered_span
 
 __all__ = ["evaluate", "evaluate_figures"]
-
-#: Shape values that fewer kept particles cover are not evaluated (as in the widefield model).
-_MIN_PARTICLES = 10
 
 
 def _columns(cal: Calibration, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -35,7 +32,7 @@ def _columns(cal: Calibration, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray
     dx = np.stack([d[0][kept] for d in deltas], axis=1) * px
     dy = np.stack([d[1][kept] for d in deltas], axis=1) * px
     domain = cal.local.shapes[cal.shape].inverse.domain[kept]
-    s_grid = np.linspace(*covered_span(domain, min(_MIN_PARTICLES, kept.size)), n_s)
+    s_grid = np.linspace(*covered_span(domain, min(MIN_PARTICLES, kept.size)), n_s)
     z_table = np.stack([cal.local_z(s)[kept] for s in s_grid], axis=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -29,6 +29,9 @@ __all__ = ["WidefieldModel", "covered_span"]
 
 _PARTS = ("axial", "dx", "dy")  # the three field models, as named in files
 
+#: Shape values that fewer kept particles cover are not tabulated (nor evaluated).
+MIN_PARTICLES = 10
+
 
 def _bracket(grid: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Left column index, weight of the right column, and whether v is inside the grid."""
@@ -156,7 +159,7 @@ class WidefieldModel:
         n_terms: int = 400,
         n_s: int = 241,
         z_step_nm: float = 25.0,
-        min_particles: int = 10,
+        min_particles: int = MIN_PARTICLES,
         k_near: int = 6,
         min_fraction: float = 0.5,
     ) -> WidefieldModel:
@@ -237,7 +240,8 @@ class WidefieldModel:
 
     @property
     def s_range(self) -> tuple[float, float]:
-        """Smallest and largest shape value any particle covers."""
+        """Smallest and largest tabulated shape value: the span that at least ``min_particles``
+        kept particles cover (:meth:`from_calibration`)."""
         return float(self.s_grid[0]), float(self.s_grid[-1])
 
     def coverage(self, x_px: Any, y_px: Any, s: Any) -> np.ndarray:
