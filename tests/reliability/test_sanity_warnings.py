@@ -60,20 +60,30 @@ def test_calibrate_warns_about_a_z_step_in_the_wrong_unit(small_microscope):
             pass  # with every z a thousand times too small, later stages may give up too
 
 
-def test_localize_warns_about_a_pixel_size_unlike_the_calibrations(small_microscope, tmp_path):
-    from click.testing import CliRunner
-
+@pytest.fixture(scope="module")
+def calibration_file(small_microscope, tmp_path_factory):
     from latentz.calibrate import calibrate
-    from latentz.cli import main
 
     data = small_microscope.calibration
-    cal_path = tmp_path / "cal.h5"
-    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(
-        cal_path
-    )
+    path = tmp_path_factory.mktemp("sanity") / "cal.h5"
+    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(path)
+    return path
+
+
+def _localize_args(small_microscope, calibration_file, out):
     movie = str(small_microscope.folder / "movie.tif")
+    return ["localize", movie, "--calibration", str(calibration_file), "--quiet", "--out", str(out)]
+
+
+def test_localize_warns_about_a_pixel_size_unlike_the_calibrations(
+    small_microscope, calibration_file, tmp_path
+):
+    from click.testing import CliRunner
+
+    from latentz.cli import main
+
     out = tmp_path / "locs.parquet"
-    args = ["localize", movie, "--calibration", str(cal_path), "--quiet", "--out", str(out)]
+    args = _localize_args(small_microscope, calibration_file, out)
     with pytest.warns(LatentzWarning, match=r"Pixel size 65 nm is inconsistent .* 130 nm"):
         result = CliRunner().invoke(main, [*args, "--pixel-size-nm", "65"])
     assert result.exit_code == 0 and out.exists()
@@ -89,20 +99,14 @@ def test_widths_outside_calibration_warn():
     silent(check_widths, np.array([1.3, 2.4, np.nan]), (1.2, 2.5))
 
 
-def test_localize_warns_once_per_run_not_once_per_chunk(small_microscope, tmp_path):
+def test_localize_warns_once_per_run_not_once_per_chunk(
+    small_microscope, calibration_file, tmp_path
+):
     from click.testing import CliRunner
 
-    from latentz.calibrate import calibrate
     from latentz.cli import main
 
-    data = small_microscope.calibration
-    cal_path = tmp_path / "cal.h5"
-    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(
-        cal_path
-    )
-    movie = str(small_microscope.folder / "movie.tif")
-    out = tmp_path / "locs.parquet"
-    args = ["localize", movie, "--calibration", str(cal_path), "--quiet", "--out", str(out)]
+    args = _localize_args(small_microscope, calibration_file, tmp_path / "locs.parquet")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = CliRunner().invoke(main, [*args, "--chunk-frames", "1", "--offset", "60000"])
