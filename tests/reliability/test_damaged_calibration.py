@@ -8,16 +8,7 @@ import h5py
 import pytest
 from click.testing import CliRunner
 
-from latentz.calibrate import calibrate
 from latentz.cli import main
-
-
-@pytest.fixture(scope="module")
-def good_calibration(small_microscope, tmp_path_factory):
-    data = small_microscope.calibration
-    path = tmp_path_factory.mktemp("damaged_cal") / "cal.h5"
-    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(path)
-    return path
 
 
 def _localize_with(cal_path, small_microscope, tmp_path):
@@ -41,17 +32,17 @@ def _localize_with(cal_path, small_microscope, tmp_path):
     return lines[0]
 
 
-def test_missing_dataset(good_calibration, small_microscope, tmp_path):
+def test_missing_dataset(calibration_file, small_microscope, tmp_path):
     bad = tmp_path / "bad.h5"
-    shutil.copy(good_calibration, bad)
+    shutil.copy(calibration_file, bad)
     with h5py.File(bad, "a") as handle:
         del handle["culling/culled"]
     assert "damaged latentz calibration" in _localize_with(bad, small_microscope, tmp_path)
 
 
-def test_other_format_version(good_calibration, small_microscope, tmp_path):
+def test_other_format_version(calibration_file, small_microscope, tmp_path):
     bad = tmp_path / "future.h5"
-    shutil.copy(good_calibration, bad)
+    shutil.copy(calibration_file, bad)
     with h5py.File(bad, "a") as handle:
         handle.attrs["format"] = json.dumps("latentz-calibration/99")
         handle.attrs["version"] = json.dumps("9.0.0")
@@ -60,8 +51,8 @@ def test_other_format_version(good_calibration, small_microscope, tmp_path):
 
 
 @pytest.mark.parametrize("fraction", [0.1, 0.5, 0.9])
-def test_truncated_file(good_calibration, small_microscope, tmp_path, fraction):
-    data = good_calibration.read_bytes()
+def test_truncated_file(calibration_file, small_microscope, tmp_path, fraction):
+    data = calibration_file.read_bytes()
     bad = tmp_path / "cut.h5"
     bad.write_bytes(data[: int(len(data) * fraction)])
     assert "Cannot read cut.h5" in _localize_with(bad, small_microscope, tmp_path)

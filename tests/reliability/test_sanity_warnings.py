@@ -60,16 +60,6 @@ def test_calibrate_warns_about_a_z_step_in_the_wrong_unit(small_microscope):
             pass  # with every z a thousand times too small, later stages may give up too
 
 
-@pytest.fixture(scope="module")
-def calibration_file(small_microscope, tmp_path_factory):
-    from latentz.calibrate import calibrate
-
-    data = small_microscope.calibration
-    path = tmp_path_factory.mktemp("sanity") / "cal.h5"
-    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(path)
-    return path
-
-
 def _localize_args(small_microscope, calibration_file, out):
     movie = str(small_microscope.folder / "movie.tif")
     return ["localize", movie, "--calibration", str(calibration_file), "--quiet", "--out", str(out)]
