@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from latentz.calibrate.pipeline import calibrate
+from latentz.calibration.pipeline import calibrate
 from latentz.camera import Camera
 from latentz.fit import render_rois
 

@@ -20,7 +20,7 @@ import warnings
 import numpy as np
 from metpy.interpolate import natural_neighbor_to_points
 
-from latentz.calibrate.fieldmodels import FieldModel, field_errors
+from latentz.calibration.fieldmodels import FieldModel, field_errors
 from latentz.zernike import zernike_design
 
 SHAPE = (512, 512)

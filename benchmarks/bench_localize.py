@@ -30,7 +30,7 @@ PAPER_HZ = 90.9
 
 def make_inputs(folder: Path, n_frames_max: int, seed: int = 0) -> tuple[Path, dict[int, Path]]:
     from latentz import simulate as sim
-    from latentz.calibrate import calibrate
+    from latentz.calibration import calibrate
 
     aberrations = sim.AberrationMap.default(seed=seed, field_shape=FIELD)
     data = sim.calibration_dataset(

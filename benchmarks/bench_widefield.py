@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from latentz.accuracy import error_figure, rmse, score, widefield_study
-from latentz.calibrate import calibrate_traces
+from latentz.calibration import calibrate_traces
 
 OUT = Path(__file__).resolve().parent / "results"
 Z_LIMIT_NM = 2000.0

@@ -219,8 +219,8 @@ def _picasso_out(zl):
 
 
 def run_latentz(stack, truth, camera, z_nm):
-    from latentz.calibrate import calibrate
-    from latentz.localize import localize
+    from latentz.calibration import calibrate
+    from latentz.localization import localize
 
     t = truth[truth.plane == truth.plane.min()]
     pos = [[(r.x_px, r.y_px) for r in t[t.bead.isin(CAL_BEADS)].itertuples()]]

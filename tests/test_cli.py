@@ -148,7 +148,7 @@ def test_calibration_records_its_inputs(run_dir, calibrated):
     import hashlib
 
     from latentz import __version__
-    from latentz.calibrate import Calibration
+    from latentz.calibration import Calibration
 
     folder, _ = run_dir
     record = Calibration.load(calibrated).provenance

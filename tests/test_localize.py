@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from latentz.camera import Camera
 from latentz.fit import FIT_COLUMNS
-from latentz.localize import LOCALIZE_COLUMNS, localize
+from latentz.localization import LOCALIZE_COLUMNS, localize
 
 
 @pytest.fixture(scope="module")

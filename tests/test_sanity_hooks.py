@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from latentz._shared.sanity import LatentzWarning
-from latentz.calibrate import calibrate
+from latentz.calibration import calibrate
 from latentz.camera import Camera
-from latentz.localize import localize
+from latentz.localization import localize
 
 
 def test_offset_above_the_image_median_warns():
@@ -25,7 +25,7 @@ def test_spot_widths_far_outside_the_calibration_warn(small_microscope):
     data = small_microscope.calibration
     cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
     spots = cal.traces.planes(slice(10, 11))
-    from latentz.calibrate.traces import traces_table
+    from latentz.calibration.traces import traces_table
 
     table = traces_table(spots)
     with warnings.catch_warnings():

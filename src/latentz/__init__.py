@@ -18,14 +18,14 @@ from typing import Any
 from latentz._version import __version__
 
 _EXPORTS = {
-    "Calibration": "latentz.calibrate",
+    "Calibration": "latentz.calibration",
     "Camera": "latentz.camera",
-    "calibrate": "latentz.calibrate",
+    "calibrate": "latentz.calibration",
     "drift": "latentz.motion",
     "fit_rois": "latentz.fit",
     "icp": "latentz.motion",
     "link": "latentz.motion",
-    "localize": "latentz.localize",
+    "localize": "latentz.localization",
     "motion_uncertainty": "latentz.motion",
     "read_stack": "latentz.io",
     "read_table": "latentz.io",

@@ -2,7 +2,7 @@
 
 A simulated sample of particles (a :class:`~latentz.simulate.CalibrationDataset` imaged at a few
 piezo positions near focus) is localized as a user would localize it — detection and fits
-(:func:`latentz.localize.localize`), then :meth:`Calibration.apply` — and every localization is
+(:func:`latentz.localization.localize`), then :meth:`Calibration.apply` — and every localization is
 compared with the truth of its particle.
 
 Truth, axially. The calibrated z axis has z = 0 on the calibration particles' surface of best
@@ -56,9 +56,9 @@ def localize_dataset(
     Each spot is matched to the nearest true particle of its stack within ``max_px`` pixels and
     gets its ``particle`` and ``stack``; ``frame`` is the plane. Spots that did not converge, touch
     another or the frame's edge, or match no particle are dropped. ``options`` go to
-    :func:`latentz.localize.localize`.
+    :func:`latentz.localization.localize`.
     """
-    from latentz.localize import localize
+    from latentz.localization import localize
 
     parts = []
     for k, (stack, origin) in enumerate(zip(dataset.stacks, dataset.origins, strict=True)):
@@ -239,7 +239,7 @@ def widefield_study(
     tilted by 2 mrad, at 16 stage positions over the 2048² field, through ±3 µm in 50 nm steps,
     with the simulator's default field-dependent aberrations (``seed``). The test sample: another
     ``n_test`` particles (seed + 10) on their own substrate, imaged at 17 piezo positions from
-    −2 to +2 µm, localized with :func:`latentz.localize.localize` and
+    −2 to +2 µm, localized with :func:`latentz.localization.localize` and
     :meth:`Calibration.apply` (A-normalised shapes use each particle's own reference amplitude,
     as the paper's eq. 6 intends). Each field model in ``kinds`` gets a calibration from the same
     traces.
@@ -251,7 +251,7 @@ def widefield_study(
         and ``geometric`` (against the ``"geometric"`` truth); ``calibration_dataset``,
         ``test_dataset``, ``spots``, ``plane`` and ``focus``, for :func:`score`.
     """
-    from latentz.calibrate import calibrate, calibrate_traces
+    from latentz.calibration import calibrate, calibrate_traces
     from latentz.simulate import AberrationMap, calibration_dataset
 
     aberrations = AberrationMap.default(seed=seed)
@@ -297,7 +297,7 @@ def widefield_study(
 def score(cal: Any, study: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Localize a :func:`widefield_study`'s test spots with ``cal``; errors against the focus
     and the geometric truths (:func:`error_table`)."""
-    from latentz.calibrate.shape import uses_amplitude
+    from latentz.calibration.shape import uses_amplitude
 
     reference = "particle" if uses_amplitude(cal.shape) else "calibration"
     located = cal.apply(study["spots"], amplitude_reference=reference)

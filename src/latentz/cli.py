@@ -147,7 +147,7 @@ def calibrate(
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
-    from latentz.calibrate import calibrate as run_calibration
+    from latentz.calibration import calibrate as run_calibration
     from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
     from latentz.io import read_stack
     from latentz.pipeline import provenance

@@ -140,10 +140,10 @@ def run_demo(
     matplotlib.use("Agg")
     from latentz import sections
     from latentz import simulate as sim
-    from latentz.calibrate import ApertureLattice, calibrate
+    from latentz.calibration import ApertureLattice, calibrate
     from latentz.camera import Camera
     from latentz.io import write_table
-    from latentz.localize import localize
+    from latentz.localization import localize
     from latentz.pipeline import motion_outputs, track_tables
 
     size = QUICK if quick else FULL

@@ -88,11 +88,11 @@ def localize_movies(
     import dask.array as da
 
     from latentz._shared.sanity import LatentzWarning, check_pixel_size, check_widths
-    from latentz.calibrate import Calibration
+    from latentz.calibration import Calibration
     from latentz.chunked import run_chunked
     from latentz.cli_options import camera_from_options
     from latentz.io import read_stack
-    from latentz.localize import check_camera_offset, localize
+    from latentz.localization import check_camera_offset, localize
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
@@ -237,7 +237,7 @@ def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
     """Write one HTML report of whatever a run folder holds: calibration (``*.h5``),
     localization tables (``*.parquet``) and motion tables (with their ``track`` siblings)."""
     from latentz import sections
-    from latentz.calibrate import Calibration
+    from latentz.calibration import Calibration
     from latentz.io import read_table
     from latentz.report import write_report
 

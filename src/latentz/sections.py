@@ -19,7 +19,7 @@ __all__ = [
 def calibration_section(cal, *, particle: int | None = None) -> Section:
     """Fig. 2 for one particle (default: the kept one nearest focus at the field centre),
     Fig. 3, best focus / tilt / field curvature, and the culled particles with reasons."""
-    from latentz.calibrate import figure2, figure3, figure_focus
+    from latentz.calibration import figure2, figure3, figure_focus
 
     table = cal.particles
     if particle is None:
@@ -56,7 +56,7 @@ def widefield_section(cal) -> Section | None:
 def emitter_arrays_section(calibrations: dict) -> Section:
     """Supp. Fig. 9: where each emitter array (particles, apertures) shows ρ_A = 0 across the
     field: the shape of an image depends on the emitter as well as on the microscope."""
-    from latentz.calibrate import figure_shape_zero
+    from latentz.calibration import figure_shape_zero
 
     return Section(
         "Emitter arrays",

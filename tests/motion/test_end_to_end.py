@@ -3,8 +3,8 @@ simulated gear's true motion, within the Monte Carlo uncertainty."""
 
 import numpy as np
 
-from latentz.calibrate import calibrate
-from latentz.localize import localize
+from latentz.calibration import calibrate
+from latentz.localization import localize
 from latentz.pipeline import track_tables
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from latentz.motion.link import link
+from latentz.motion.linking import link
 from latentz.motion.rigid import rigid_motion
 from latentz.simulate.gear_motion import gear_trajectory
 

@@ -12,7 +12,7 @@ settings.load_profile("reliability")
 @pytest.fixture(scope="session")
 def calibration_file(small_microscope, tmp_path_factory):
     """The small microscope's calibration (nearest-particle models), saved to HDF5."""
-    from latentz.calibrate import calibrate
+    from latentz.calibration import calibrate
 
     data = small_microscope.calibration
     path = tmp_path_factory.mktemp("calibration") / "cal.h5"

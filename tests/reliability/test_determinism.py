@@ -6,9 +6,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from latentz.calibrate import calibrate
+from latentz.calibration import calibrate
 from latentz.fit import fit_rois
-from latentz.localize import localize
+from latentz.localization import localize
 from latentz.motion import motion_uncertainty
 
 pytestmark = pytest.mark.skipif(

@@ -20,7 +20,7 @@ import pytest
 import tifffile
 from click.testing import CliRunner
 
-from latentz.calibrate import Calibration
+from latentz.calibration import Calibration
 from latentz.cli import main
 from latentz.io import read_table
 

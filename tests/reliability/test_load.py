@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from latentz.detect import detect
-from latentz.localize import localize
+from latentz.localization import localize
 
 N_FRAMES, SHAPE, N_SPOTS = (
     5,

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_property_fit import DTYPES, KINDS, make_rois
 
-from latentz.calibrate import calibrate
-from latentz.localize import LOCALIZE_COLUMNS, localize
+from latentz.calibration import calibrate
+from latentz.localization import LOCALIZE_COLUMNS, localize
 
 
 @given(

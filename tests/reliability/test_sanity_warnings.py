@@ -45,7 +45,7 @@ def test_z_step_that_the_widths_contradict_warns():
 
 
 def test_calibrate_warns_about_a_z_step_in_the_wrong_unit(small_microscope):
-    from latentz.calibrate import calibrate
+    from latentz.calibration import calibrate
 
     data = small_microscope.calibration
     with warnings.catch_warnings():

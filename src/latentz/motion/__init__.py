@@ -28,7 +28,7 @@ from latentz.motion.figures import (
     motion_figures,
     save_figure,
 )
-from latentz.motion.link import link
+from latentz.motion.linking import link
 from latentz.motion.rigid import (
     IcpResult,
     RigidTransform,

@@ -6,8 +6,8 @@ import pandas as pd
 import pytest
 from calib_synthetic import make_traces
 
-from latentz.calibrate.pipeline import calibrate, calibrate_traces
-from latentz.calibrate.traces import traces_table
+from latentz.calibration.pipeline import calibrate, calibrate_traces
+from latentz.calibration.traces import traces_table
 from latentz.camera import Camera
 
 CAM = Camera(offset=0.0, gain=1.0, readnoise=0.0, pixel_size_nm=100.0)
@@ -103,7 +103,7 @@ def test_batch_evaluation_over_particles(calibrated):
 
 
 def test_local_models_are_never_extrapolated_beyond_the_imaged_z_span(calibrated):
-    from latentz.calibrate.widefield import WidefieldModel
+    from latentz.calibration.widefield import WidefieldModel
 
     cal, traces, _ = calibrated
     lo, hi = cal.z_span_nm.T
@@ -128,7 +128,7 @@ def test_local_models_are_never_extrapolated_beyond_the_imaged_z_span(calibrated
 
 
 def test_the_shape_grid_spans_what_enough_particles_cover(calibrated):
-    from latentz.calibrate.widefield import WidefieldModel
+    from latentz.calibration.widefield import WidefieldModel
 
     cal, _, _ = calibrated
     domain = cal.local.shapes[cal.shape].inverse.domain[cal.kept]
@@ -241,7 +241,7 @@ def test_images_with_decreasing_z_give_the_same_calibration():
 
 
 def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
-    from latentz.calibrate.calibration import Calibration
+    from latentz.calibration.calibration import Calibration
 
     cal, traces, _ = calibrated
     path = tmp_path / "cal.h5"
@@ -259,7 +259,7 @@ def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
     spots = traces_table(traces.subset([1, 2]))
     pd.testing.assert_frame_equal(cal.apply(spots), back.apply(spots))
     with pytest.raises(ValueError, match="format"):
-        from latentz.calibrate._state import from_arrays
+        from latentz.calibration._state import from_arrays
 
         from_arrays(arrays, {**attrs, "format": "other"})
 
@@ -276,7 +276,7 @@ def zernike_file(calibrated, tmp_path_factory):
 def test_widefield_models_are_stored_and_apply_bit_identically(zernike_file):
     import h5py
 
-    from latentz.calibrate.calibration import Calibration
+    from latentz.calibration.calibration import Calibration
 
     wide, traces, path = zernike_file
     with h5py.File(path, "r") as handle:
@@ -301,7 +301,7 @@ def test_a_format_1_file_rebuilds_its_widefield_models(zernike_file, tmp_path):
 
     import h5py
 
-    from latentz.calibrate.calibration import Calibration
+    from latentz.calibration.calibration import Calibration
 
     wide, traces, path = zernike_file
     old = tmp_path / "old.h5"
@@ -322,7 +322,7 @@ def test_a_missing_widefield_dataset_is_a_damaged_file(zernike_file, tmp_path, d
 
     import h5py
 
-    from latentz.calibrate.calibration import Calibration
+    from latentz.calibration.calibration import Calibration
 
     _, _, path = zernike_file
     bad = tmp_path / "bad.h5"
@@ -370,7 +370,7 @@ def test_a_tiff_path_with_a_single_bead_and_explicit_position(tmp_path):
 
 
 def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
-    from latentz.calibrate.calibration import _interp_rows
+    from latentz.calibration.calibration import _interp_rows
 
     rng = np.random.default_rng(5)
     planes = np.linspace(-3000.0, 3000.0, 61)

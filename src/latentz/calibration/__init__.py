@@ -5,16 +5,16 @@ culling, tilt removal, 3D localization with the nearest particle's models, and t
 field models and the aperture-array magnification live beside them.
 """
 
-from latentz.calibrate.apertures import ApertureLattice
-from latentz.calibrate.calibration import FIELD_MODELS, Calibration
-from latentz.calibrate.fieldmodels import FieldModel, field_errors
-from latentz.calibrate.figures import figure2, figure3, figure_focus, figure_shape_zero
-from latentz.calibrate.local import LocalOptions
-from latentz.calibrate.pipeline import calibrate, calibrate_traces
-from latentz.calibrate.polymodel import PolyModel
-from latentz.calibrate.shape import SHAPES, astigmatism_angle, shape_value
-from latentz.calibrate.tilt import TiltPlane
-from latentz.calibrate.traces import Traces, extract_traces, find_particles
+from latentz.calibration.apertures import ApertureLattice
+from latentz.calibration.calibration import FIELD_MODELS, Calibration
+from latentz.calibration.fieldmodels import FieldModel, field_errors
+from latentz.calibration.figures import figure2, figure3, figure_focus, figure_shape_zero
+from latentz.calibration.local import LocalOptions
+from latentz.calibration.pipeline import calibrate, calibrate_traces
+from latentz.calibration.polymodel import PolyModel
+from latentz.calibration.shape import SHAPES, astigmatism_angle, shape_value
+from latentz.calibration.tilt import TiltPlane
+from latentz.calibration.traces import Traces, extract_traces, find_particles
 
 __all__ = [
     "FIELD_MODELS",

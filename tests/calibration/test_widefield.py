@@ -4,8 +4,8 @@ against per-spot evaluation, and the range rule (no extrapolation)."""
 import numpy as np
 import pytest
 
-from latentz.calibrate.fieldmodels import FieldModel
-from latentz.calibrate.widefield import WidefieldModel
+from latentz.calibration.fieldmodels import FieldModel
+from latentz.calibration.widefield import WidefieldModel
 
 SHAPE = (256, 256)
 RNG = np.random.default_rng(7)
@@ -130,7 +130,7 @@ def test_bad_options():
 
 
 def test_spots_beyond_the_field_are_out_of_range_not_errors():
-    from latentz.calibrate.widefield import WidefieldModel
+    from latentz.calibration.widefield import WidefieldModel
 
     rng = np.random.default_rng(3)
     x, y = rng.uniform(0, 63, 80), rng.uniform(0, 63, 80)

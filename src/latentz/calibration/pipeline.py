@@ -1,7 +1,7 @@
 """The calibration pipeline: stacks → traces → local models → culling → tilt removal.
 
 :func:`calibrate` turns through-focus stacks of calibration particles into a
-:class:`~latentz.calibrate.calibration.Calibration`: traces of every particle, its local models
+:class:`~latentz.calibration.calibration.Calibration`: traces of every particle, its local models
 (z_f, Δx'(z), Δy'(z), z(shape) with σ's), culling of defective particles, and removal of the
 substrate tilt so that z = 0 is the focal surface of the calibration particles after levelling.
 Only ``field_model="nearest"`` is available until the widefield stage is integrated.
@@ -18,13 +18,13 @@ import pandas as pd
 
 from latentz._shared.sanity import check_z_step
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
-from latentz.calibrate.calibration import FIELD_MODELS, PAPER_SHAPES, Calibration
-from latentz.calibrate.culling import cull as cull_particles
-from latentz.calibrate.culling import particle_features
-from latentz.calibrate.local import LocalOptions, fit_local
-from latentz.calibrate.shape import SHAPES, astigmatism_angle
-from latentz.calibrate.tilt import TiltPlane
-from latentz.calibrate.traces import Traces, extract_traces
+from latentz.calibration.calibration import FIELD_MODELS, PAPER_SHAPES, Calibration
+from latentz.calibration.culling import cull as cull_particles
+from latentz.calibration.culling import particle_features
+from latentz.calibration.local import LocalOptions, fit_local
+from latentz.calibration.shape import SHAPES, astigmatism_angle
+from latentz.calibration.tilt import TiltPlane
+from latentz.calibration.traces import Traces, extract_traces
 from latentz.camera import Camera
 
 __all__ = ["calibrate", "calibrate_traces"]
@@ -115,7 +115,7 @@ def calibrate(
         ``cull`` (bool, default True) and ``cull_threshold`` (robust z-score, default 6),
         ``neighbours`` (default 8) — with fewer than 10 usable particles only outright failures
         are culled, as population statistics need a population; and the
-        :class:`~latentz.calibrate.local.LocalOptions` fields (``amplitude_order``,
+        :class:`~latentz.calibration.local.LocalOptions` fields (``amplitude_order``,
         ``focus_fraction``, ``lateral_order``, ``shape_order``,
         ``sigma_window_nm``, ``min_range_nm``).
 

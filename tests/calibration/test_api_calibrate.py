@@ -1,6 +1,6 @@
-"""The public names of latentz.calibrate import."""
+"""The public names of latentz.calibration import."""
 
-import latentz.calibrate as calibrate_package
+import latentz.calibration as calibrate_package
 
 
 def test_all_names_import():

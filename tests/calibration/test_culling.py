@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 from calib_synthetic import make_traces
 
-from latentz.calibrate.culling import cull, neighbour_offsets, robust_z
-from latentz.calibrate.pipeline import calibrate_traces
+from latentz.calibration.culling import cull, neighbour_offsets, robust_z
+from latentz.calibration.pipeline import calibrate_traces
 from latentz.camera import Camera
 
 

@@ -5,8 +5,8 @@ import pytest
 from calib_synthetic import make_traces, widths
 from numpy.polynomial import chebyshev as cheb
 
-from latentz.calibrate.local import LocalOptions, fit_local, sliding_rms
-from latentz.calibrate.shape import shape_value
+from latentz.calibration.local import LocalOptions, fit_local, sliding_rms
+from latentz.calibration.shape import shape_value
 
 SHAPES = ("rho", "rho_w", "rho_A")
 

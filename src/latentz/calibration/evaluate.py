@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from latentz.calibrate.calibration import FIELD_MODELS, Calibration
-from latentz.calibrate.fieldmodels import FieldModel, field_errors
-from latentz.calibrate.widefield import MIN_PARTICLES, covered_span
+from latentz.calibration.calibration import FIELD_MODELS, Calibration
+from latentz.calibration.fieldmodels import FieldModel, field_errors
+from latentz.calibration.widefield import MIN_PARTICLES, covered_span
 
 __all__ = ["evaluate", "evaluate_figures"]
 

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from latentz.calibrate.pipeline import calibrate, calibrate_traces
-from latentz.calibrate.traces import extract_traces, traces_table
+from latentz.calibration.pipeline import calibrate, calibrate_traces
+from latentz.calibration.traces import extract_traces, traces_table
 from latentz.camera import Camera
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"

@@ -13,8 +13,8 @@ import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
-from latentz.calibrate.pipeline import calibrate
-from latentz.calibrate.traces import extract_traces, traces_table
+from latentz.calibration.pipeline import calibrate
+from latentz.calibration.traces import extract_traces, traces_table
 from latentz.camera import Camera
 from latentz.simulate._render import render_expected
 from latentz.simulate.aberrations import AberrationMap
@@ -196,7 +196,7 @@ def test_nearest_localization_of_test_particles(sim):
 
 
 def test_auto_shapes_on_the_pi_over_4_microscope(sim):
-    from latentz.calibrate.pipeline import calibrate_traces
+    from latentz.calibration.pipeline import calibrate_traces
 
     _, cal, _, _ = sim
     kept = ~cal.culled

@@ -20,9 +20,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from latentz.calibrate.polymodel import PolyModel
-from latentz.calibrate.shape import reference_amplitude, shape_value, uses_amplitude
-from latentz.calibrate.traces import Traces
+from latentz.calibration.polymodel import PolyModel
+from latentz.calibration.shape import reference_amplitude, shape_value, uses_amplitude
+from latentz.calibration.traces import Traces
 
 __all__ = [
     "LocalOptions",
@@ -257,7 +257,7 @@ def fit_local(
     traces : Traces
         Per-plane fit results.
     shapes : tuple of str
-        Shape parameters to model (see :mod:`latentz.calibrate.shape`).
+        Shape parameters to model (see :mod:`latentz.calibration.shape`).
     theta : float, optional
         Astigmatism angle (rad), needed for "auto" and "auto_A".
     options : LocalOptions

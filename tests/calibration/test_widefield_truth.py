@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from latentz.accuracy import rmse, widefield_study
-from latentz.calibrate.fieldmodels import FieldModel
+from latentz.calibration.fieldmodels import FieldModel
 
 pytestmark = pytest.mark.slow
 Z_LIMIT_NM = 2000.0

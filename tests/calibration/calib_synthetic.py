@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from latentz.calibrate.traces import Traces
+from latentz.calibration.traces import Traces
 
 
 def widths(z, z_f, *, theta, s0=1.5, c=500.0, d=1200.0):

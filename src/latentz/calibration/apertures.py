@@ -15,7 +15,7 @@ scatter, so it is honest for independent localization errors. What the lattice c
 The uncertainty is statistical. A field of apparent shifts whose linear part mimics a change of
 magnification (for example from field-dependent aberrations of the aperture images) is absorbed
 into the basis and does not show in the residuals; on the simulator's default aberrations this
-amounts to about 7e-5 of the pixel size (tests/calibrate/test_apertures.py).
+amounts to about 7e-5 of the pixel size (tests/calibration/test_apertures.py).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from latentz._shared.validate import check_array, check_int, check_positive
-from latentz.calibrate.fieldmodels import FieldModel
+from latentz.calibration.fieldmodels import FieldModel
 
 __all__ = ["ApertureLattice"]
 

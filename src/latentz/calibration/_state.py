@@ -1,6 +1,6 @@
 """A Calibration as plain arrays, and its HDF5 file (local stage).
 
-Every part of a :class:`~latentz.calibrate.calibration.Calibration` is arrays plus a few
+Every part of a :class:`~latentz.calibration.calibration.Calibration` is arrays plus a few
 scalars and options, so it flattens to ``{"group/name": ndarray}``. :func:`save` writes that
 mapping to HDF5 (one dataset per key, options, camera and provenance as JSON attributes) through
 an atomic temporary file; :func:`load` reads it back bit for bit. The widefield models (the
@@ -86,11 +86,11 @@ def to_arrays(cal) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
 
 def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
     """Rebuild the Calibration that :func:`to_arrays` flattened."""
-    from latentz.calibrate.calibration import Calibration
-    from latentz.calibrate.local import LocalModels, ShapeModel
-    from latentz.calibrate.polymodel import PolyModel
-    from latentz.calibrate.tilt import TiltPlane
-    from latentz.calibrate.traces import Traces
+    from latentz.calibration.calibration import Calibration
+    from latentz.calibration.local import LocalModels, ShapeModel
+    from latentz.calibration.polymodel import PolyModel
+    from latentz.calibration.tilt import TiltPlane
+    from latentz.calibration.traces import Traces
     from latentz.camera import Camera
 
     if attrs.get("format") not in _READABLE:
@@ -147,7 +147,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
         provenance=attrs.get("provenance") or {},
     )
     if "widefield" in attrs:
-        from latentz.calibrate.widefield import WidefieldModel
+        from latentz.calibration.widefield import WidefieldModel
 
         cal._cache["widefield"] = WidefieldModel.from_arrays(
             group("widefield/"), attrs["widefield"]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from metpy.interpolate import natural_neighbor_to_points
 
-from latentz.calibrate.fieldmodels import FIELD_MODEL_KINDS, FieldModel, field_errors
+from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS, FieldModel, field_errors
 from latentz.zernike import zernike_design
 
 SHAPE = (96, 128)  # (H, W) pixels

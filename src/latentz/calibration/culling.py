@@ -29,8 +29,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz.calibrate.local import LocalModels, row_mean
-from latentz.calibrate.traces import Traces
+from latentz.calibration.local import LocalModels, row_mean
+from latentz.calibration.traces import Traces
 
 __all__ = ["particle_features", "robust_z", "neighbour_offsets", "cull", "FEATURE_TESTS"]
 

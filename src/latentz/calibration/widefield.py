@@ -1,7 +1,7 @@
 """Widefield models: z(x', y'; s) and Δx', Δy'(x', y'; z) over the whole field (METHOD.md 15-20).
 
 Each calibration particle gives z for a shape value s (its inverse function, inside its monotonic
-range) and Δx'(z), Δy'(z). A :class:`~latentz.calibrate.fieldmodels.FieldModel` turns those values
+range) and Δx'(z), Δy'(z). A :class:`~latentz.calibration.fieldmodels.FieldModel` turns those values
 into functions of field position. To localize many spots without a least-squares problem per
 spot, the values are tabulated on fine grids of s and z (one field-model column per grid value;
 the work that depends only on which particles are valid is shared by the columns with the same
@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from latentz._shared.validate import check_array, check_int, check_positive
-from latentz.calibrate.fieldmodels import FieldModel
+from latentz.calibration.fieldmodels import FieldModel
 from latentz.zernike import zernike_design
 
 __all__ = ["WidefieldModel", "covered_span"]
@@ -163,14 +163,14 @@ class WidefieldModel:
         k_near: int = 6,
         min_fraction: float = 0.5,
     ) -> WidefieldModel:
-        """Tabulate a :class:`~latentz.calibrate.calibration.Calibration`'s kept particles.
+        """Tabulate a :class:`~latentz.calibration.calibration.Calibration`'s kept particles.
 
         ``field_shape`` is ``(H, W)`` of the whole field in pixels (stage positions included).
         The s grid has ``n_s`` values over the shape values that at least ``min_particles`` kept
         particles cover (a few particles with unusual ranges must not stretch it), and the z grid
         spans the resulting heights in steps of at most ``z_step_nm``. Each particle contributes
         only inside its own ranges: its monotonic shape range and the z span it was imaged over
-        (:meth:`~latentz.calibrate.calibration.Calibration.local_z`, ``local_delta``). Other
+        (:meth:`~latentz.calibration.calibration.Calibration.local_z`, ``local_delta``). Other
         options as in :meth:`from_tables`.
         """
         kept = cal.kept

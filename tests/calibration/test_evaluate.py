@@ -3,7 +3,7 @@ local models are known to vary smoothly across the field."""
 
 import numpy as np
 
-from latentz.calibrate import calibrate
+from latentz.calibration import calibrate
 
 
 def test_evaluate_reports_every_model_axis_and_region(small_microscope):
@@ -46,7 +46,7 @@ def test_leave_one_out_of_the_interpolants_equals_a_refit_without_the_particle(s
 def test_field_errors_from_precomputed_residuals_are_the_same():
     import pandas as pd
 
-    from latentz.calibrate.fieldmodels import FieldModel, field_errors
+    from latentz.calibration.fieldmodels import FieldModel, field_errors
 
     rng = np.random.default_rng(8)
     x, y = rng.uniform(0, 199, (2, 60))

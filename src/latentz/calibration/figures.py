@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from latentz._shared.validate import check_int
-from latentz.calibrate.calibration import PAPER_SHAPES, Calibration
+from latentz.calibration.calibration import PAPER_SHAPES, Calibration
 from latentz.report import save_figure
 
 __all__ = ["figure2", "figure3", "figure_focus", "figure_shape_zero"]
@@ -143,7 +143,7 @@ def figure2(
 
 def _abs_model(cal: Calibration, axis: str):
     """x'(z) or y'(z) (pixels): Δ model plus the position at z_f."""
-    from latentz.calibrate.polymodel import PolyModel
+    from latentz.calibration.polymodel import PolyModel
 
     delta = cal.local.dx if axis == "x" else cal.local.dy
     data = cal.traces[axis]
@@ -268,7 +268,7 @@ def figure_shape_zero(
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from latentz.calibrate.fieldmodels import FieldModel
+    from latentz.calibration.fieldmodels import FieldModel
 
     n = len(calibrations)
     fig, axes = plt.subplots(2, n, figsize=(5.5 * n, 9.0), squeeze=False)

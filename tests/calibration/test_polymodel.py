@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.polynomial import Chebyshev, Polynomial
 
-from latentz.calibrate.polymodel import PolyModel
+from latentz.calibration.polymodel import PolyModel
 
 Z = np.linspace(-3000.0, 3000.0, 121)
 

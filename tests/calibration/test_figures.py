@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from calib_synthetic import make_traces
 
-from latentz.calibrate.figures import figure2, figure3, figure_focus, interpercentile
-from latentz.calibrate.pipeline import calibrate_traces
+from latentz.calibration.figures import figure2, figure3, figure_focus, interpercentile
+from latentz.calibration.pipeline import calibrate_traces
 from latentz.camera import Camera
 
 

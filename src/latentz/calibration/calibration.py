@@ -18,10 +18,10 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_widths
 from latentz._shared.validate import check_choice, check_columns
-from latentz.calibrate.local import LocalModels, row_mean
-from latentz.calibrate.shape import shape_sigma, shape_value, uses_amplitude
-from latentz.calibrate.tilt import TiltPlane
-from latentz.calibrate.traces import Traces
+from latentz.calibration.local import LocalModels, row_mean
+from latentz.calibration.shape import shape_sigma, shape_value, uses_amplitude
+from latentz.calibration.tilt import TiltPlane
+from latentz.calibration.traces import Traces
 from latentz.camera import Camera
 
 __all__ = ["Calibration", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
@@ -73,7 +73,7 @@ class Calibration:
 
     def as_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """The whole state as ``({"group/name": ndarray}, JSON-able attributes)``."""
-        from latentz.calibrate._state import to_arrays
+        from latentz.calibration._state import to_arrays
 
         return to_arrays(self)
 
@@ -83,14 +83,14 @@ class Calibration:
         ``provenance`` (JSON-able, e.g. input files and their SHA-256) is added to
         :attr:`provenance` and stored with the options, camera, the latentz version and the date.
         """
-        from latentz.calibrate._state import save
+        from latentz.calibration._state import save
 
         save(self, path, provenance=provenance)
 
     @classmethod
     def load(cls, path: Any) -> Calibration:
         """Read a calibration written by :meth:`save`."""
-        from latentz.calibrate._state import load
+        from latentz.calibration._state import load
 
         return load(path)
 
@@ -118,13 +118,13 @@ class Calibration:
 
     @property
     def widefield(self):
-        """The widefield models (:class:`~latentz.calibrate.widefield.WidefieldModel`) of the
+        """The widefield models (:class:`~latentz.calibration.widefield.WidefieldModel`) of the
         kept particles, tabulated on first use from the local models (so a saved and loaded
         calibration gives the same model); None for ``field_model="nearest"``."""
         if self.field_model == "nearest":
             return None
         if "widefield" not in self._cache:
-            from latentz.calibrate.widefield import WidefieldModel
+            from latentz.calibration.widefield import WidefieldModel
 
             self._cache["widefield"] = WidefieldModel.from_calibration(
                 self,
@@ -136,14 +136,14 @@ class Calibration:
 
     def evaluate(self, **options: Any) -> pd.DataFrame:
         """Widefield errors against z for each field model (paper Fig. 5); see
-        :func:`latentz.calibrate.evaluate.evaluate`."""
-        from latentz.calibrate.evaluate import evaluate
+        :func:`latentz.calibration.evaluate.evaluate`."""
+        from latentz.calibration.evaluate import evaluate
 
         return evaluate(self, **options)
 
     def evaluate_figures(self) -> dict[str, Any]:
         """Figs. 4 and 5 as matplotlib figures, by name."""
-        from latentz.calibrate.evaluate import evaluate_figures
+        from latentz.calibration.evaluate import evaluate_figures
 
         return evaluate_figures(self)
 

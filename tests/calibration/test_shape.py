@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from calib_synthetic import widths
 
-from latentz.calibrate.shape import (
+from latentz.calibration.shape import (
     astigmatism_angle,
     ellipticity,
     reference_amplitude,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from latentz.calibrate.tilt import TiltPlane
+from latentz.calibration.tilt import TiltPlane
 
 
 def test_plane_nutation_azimuth_and_curvature_residuals():

@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
-from latentz.calibrate.apertures import ApertureLattice
+from latentz.calibration.apertures import ApertureLattice
 
 PITCH_NM, PIXEL_NM = 5000.0, 129.3
 
@@ -84,7 +84,7 @@ def test_distortion_field_models_the_residual_displacement():
 
 def test_end_to_end_through_simulated_aperture_array():
     simulate = pytest.importorskip("latentz.simulate")
-    from latentz.localize import localize
+    from latentz.localization import localize
 
     ds = simulate.aperture_array(seed=0)
     locs = localize(ds.frames, camera=ds.camera)
@@ -124,7 +124,7 @@ def test_errors():
 def aperture_calibration():
     """Supp. Fig. 9's second array: sub-resolution apertures imaged through focus, calibrated
     like particles."""
-    from latentz.calibrate import calibrate
+    from latentz.calibration import calibrate
     from latentz.simulate import AberrationMap, aperture_array
 
     z = np.arange(-2000.0, 2001.0, 100.0)
@@ -193,7 +193,7 @@ def test_apertures_calibrate_like_particles_and_find_where_rho_a_is_zero(apertur
 def test_figure_of_where_each_array_shows_rho_a_zero(aperture_calibration, tmp_path):
     from matplotlib.image import imread
 
-    from latentz.calibrate import figure_shape_zero
+    from latentz.calibration import figure_shape_zero
 
     _, cal = aperture_calibration
     path = tmp_path / "supp_fig9.png"
