@@ -56,5 +56,7 @@ def test_public_names_survive_importing_every_submodule_first():
 def test_no_module_is_named_like_a_public_name():
     import pkgutil
 
-    modules = {m.name.rsplit(".", 1)[-1] for m in pkgutil.walk_packages(latentz.__path__, "latentz.")}
+    modules = {
+        m.name.rsplit(".", 1)[-1] for m in pkgutil.walk_packages(latentz.__path__, "latentz.")
+    }
     assert not modules & set(latentz.__all__)
