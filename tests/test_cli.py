@@ -174,6 +174,10 @@ def test_pipeline_localize_track_report(run_dir, calibrated):
         folder / "locs.parquet",
     )
     assert result.exit_code == 0, result.output
+    from latentz.readout import frame_rate_hz
+
+    rows = gear.frames.shape[1]  # the acquisition rate for the movie's rows at 1 ms
+    assert f"({frame_rate_hz(1.0, rows):.1f} Hz: 1 ms exposure, {rows} rows)" in result.output
     locs, meta = read_table(folder / "locs.parquet")
     assert meta["inputs"]["calibration"][0]["sha256"]  # provenance of the calibration used
     assert locs["in_range"].mean() > 0.9
