@@ -194,7 +194,14 @@ def track_tables(
     """Link the in-range localizations, fit rigid motion, its Monte Carlo uncertainty and
     Table 1 (with drift from ``static_frames``, frames without intentional motion)."""
     from latentz._shared.validate import check_columns
-    from latentz.motion import drift, link, motion_uncertainty, rigid_motion, table1
+    from latentz.motion import (
+        drift,
+        link,
+        motion_uncertainty,
+        resolve_by_icp,
+        rigid_motion,
+        table1,
+    )
 
     check_columns("locs", locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
     kept = locs[locs["in_range"].astype(bool)]
@@ -202,7 +209,8 @@ def track_tables(
         raise ValueError("Tracking needs in-range localizations in at least two frames.")
     moving = kept if not static_frames else kept[~kept["frame"].isin(static_frames)]
     tracks = link(moving, search_range_nm=search_range_nm, memory=memory, predict=True)
-    motion = rigid_motion(tracks)
+    # where linking leaves a cycle ambiguous, ICP registers the two frames directly
+    motion = resolve_by_icp(rigid_motion(tracks), moving, max_distance_nm=search_range_nm)
     uncertainty = motion_uncertainty(tracks, motion, n_sim=n_sim, seed=seed)
     drift_nm = None
     if static_frames:
