@@ -305,13 +305,32 @@ def localize(
 @click.option("--memory", default=2, show_default=True, help="Frames a particle may vanish.")
 @click.option("--n-sim", default=10000, show_default=True, help="Monte Carlo simulations.")
 @click.option("--seed", default=0, show_default=True)
+@click.option(
+    "--static",
+    type=click.Path(dir_okay=False),
+    help="Localizations (or a movie, with --calibration) recorded without intentional motion: "
+    "fills Table 1's drift column.",
+)
+@click.option(
+    "--calibration",
+    "cal_path",
+    type=click.Path(dir_okay=False),
+    help="Calibration file, to localize a --static movie.",
+)
 @_quiet_option
-def track(locs, out, search_range_nm, memory, n_sim, seed, quiet) -> None:
+def track(locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, quiet) -> None:
     """Link localizations and measure rigid motion in six degrees of freedom."""
     from latentz.pipeline import track_file
 
     motion = track_file(
-        locs, out, search_range_nm=search_range_nm, memory=memory, n_sim=n_sim, seed=seed
+        locs,
+        out,
+        static=static,
+        calibration=cal_path,
+        search_range_nm=search_range_nm,
+        memory=memory,
+        n_sim=n_sim,
+        seed=seed,
     )
     click.echo(f"{out}: {len(motion)} transitions")
 
