@@ -192,7 +192,11 @@ def test_pipeline_localize_track_report(run_dir, calibrated):
     np.testing.assert_allclose(motion["gamma"], truth["gamma"].to_numpy(), atol=2e-3)
     # a still movie (the first frame three times, localized with the calibration) for the drift
     still = folder / "still.tif"
-    tifffile.imwrite(still, np.repeat(tifffile.imread(folder / "movie.tif")[:1], 3, axis=0))
+    tifffile.imwrite(
+        still,
+        np.repeat(tifffile.imread(folder / "movie.tif")[:1], 3, axis=0),
+        photometric="minisblack",
+    )
     result = run(
         "track",
         folder / "locs.parquet",
