@@ -61,10 +61,10 @@ def _heavy_tailed_position_dependent(truth, rng):
 @pytest.mark.slow
 def test_coverage_holds_for_heavy_tailed_position_dependent_noise():
     """The Monte Carlo draws Gaussian noise matched to each particle's residuals; the data here
-    have heavy-tailed noise whose size depends on the particle's position. 300 repetitions of 8
-    transitions (2400 errors per DOF, binomial SE ~1 %, 100 simulations each: the half-width to
-    about ±3 %) must still be covered 60-76 % of the time by one sigma."""
-    n_rep = 300
+    have heavy-tailed noise whose size depends on the particle's position. 200 repetitions of 8
+    transitions (1600 errors per DOF, binomial SE ~1.2 %, 100 simulations each: the half-width
+    to about ±3 %) must still be covered 60-76 % of the time by one sigma."""
+    n_rep = 200
     inside = np.zeros((n_rep, 8, 6), dtype=bool)
     for rep in range(n_rep):
         truth = gear_trajectory(8, seed=50_000 + rep)
