@@ -152,6 +152,12 @@ class Calibration:
     @property
     def width_range_px(self) -> tuple[float, float]:
         """Smallest and largest fitted width (wx, wy, pixels) of the kept particles' traces."""
+        if self.kept.size == 0:
+            raise ValueError(
+                f"This calibration kept none of its {len(self.culled)} particles (see "
+                "cal.particles['reason']), so it cannot localize: recalibrate with more "
+                "particles or a ROI that holds them."
+            )
         widths = np.stack([self.traces["wx"][self.kept], self.traces["wy"][self.kept]])
         return float(np.nanmin(widths)), float(np.nanmax(widths))
 
