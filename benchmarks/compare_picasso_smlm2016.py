@@ -307,15 +307,17 @@ def _score(runner, stack, truth, arg, z_nm, n_planes, settings, *, timed=False):
     )
 
 
-def _best(runner, stack, truth, arg, z_nm, n_planes, grid):
+def _best(runner, stack, truth, arg, z_nm, n_planes, grid, failures):
     """The settings with the smallest z RMSE (one offset removed) on the *calibration* beads,
-    among those that localize at least 90 % of their planes within ±600 nm."""
+    among those that localize at least 90 % of their planes within ±600 nm; settings that
+    cannot run are appended to ``failures``."""
     scored = []
     for settings in grid:
         try:
             r = _score(runner, stack, truth, arg, z_nm, n_planes, settings)
         except Exception as exc:  # noqa: BLE001 - a setting a tool cannot run is reported, skipped
             print(f"  {settings}: failed ({type(exc).__name__}: {exc})")
+            failures.append(f"{runner.__name__[4:]} {settings}: {exc}")
             continue
         ok = r["self"]["found"] >= 0.9 and np.isfinite(r["self"]["z_sd"])
         print(
@@ -345,10 +347,11 @@ def main():
         for ng in PICASSO_MIN_NG
         for m in PICASSO_METHODS
     ]
-    picasso_best = _best(run_picasso, stack, truth, g, z_nm, n_planes, picasso_grid)
+    failures = []
+    picasso_best = _best(run_picasso, stack, truth, g, z_nm, n_planes, picasso_grid, failures)
     print("latentz: searching the box on the calibration beads")
     latentz_best = _best(
-        run_latentz, stack, truth, camera, z_nm, n_planes, [{"box": b} for b in BOXES]
+        run_latentz, stack, truth, camera, z_nm, n_planes, [{"box": b} for b in BOXES], failures
     )
     picasso_common = {**PICASSO_DEFAULT, "box": COMMON_BOX}
     configs = {
@@ -409,6 +412,9 @@ def main():
         + ". So each tool shows a z bias of about that size on every bead, the calibration "
         "beads included. 'z RMSE after removing the mean z bias' removes "
         "one global offset per tool, computed identically for both.",
+        "Settings that could not run in the search: "
+        + ("; ".join(failures) if failures else "none")
+        + ".",
         "",
     ]
     text = "\n\n".join(header[:-1]) + "\n\n" + table(results) + "\n"
