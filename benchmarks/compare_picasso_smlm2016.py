@@ -317,7 +317,7 @@ def _best(runner, stack, truth, arg, z_nm, n_planes, grid, failures):
             r = _score(runner, stack, truth, arg, z_nm, n_planes, settings)
         except Exception as exc:  # noqa: BLE001 - a setting a tool cannot run is reported, skipped
             print(f"  {settings}: failed ({type(exc).__name__}: {exc})")
-            failures.append(f"{runner.__name__[4:]} {settings}: {exc}")
+            failures.append(f"{runner.__name__[4:]} {settings}: {str(exc).rstrip('.')}")
             continue
         ok = r["self"]["found"] >= 0.9 and np.isfinite(r["self"]["z_sd"])
         print(
