@@ -67,11 +67,17 @@ class Detections(NamedTuple):
     rois: np.ndarray
 
 
+def _wide_gaussian_width(sigma: float) -> int:
+    """Width (px) of the three boxes whose convolution has the variance of a Gaussian of
+    ``sigma`` px."""
+    return max(1, int(round(np.sqrt(4.0 * sigma**2 + 1.0))))
+
+
 def _wide_gaussian(image: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing of width ``sigma`` (pixels) by three box filters (central limit
     theorem: three boxes of width w have variance 3 (w² - 1) / 12). Its cost does not grow with
     ``sigma``, unlike a direct convolution; the background estimate needs no more precision."""
-    width = max(1, int(round(np.sqrt(4.0 * sigma**2 + 1.0))))
+    width = _wide_gaussian_width(sigma)
     out = image
     for _ in range(3):
         out = ndimage.uniform_filter(out, size=width, mode="nearest")
