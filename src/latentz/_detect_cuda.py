@@ -36,7 +36,7 @@ from latentz.detect import (
 
 __all__ = ["detect_arrays_cuda"]
 
-_THREADS_2D = (16, 16)
+_THREADS_2D = (8, 32)
 #: Bytes of float64 frames per batch; the device holds about four such buffers.
 _BATCH_BYTES = 128 * 2**20
 
