@@ -38,7 +38,7 @@ _DEVICE_FUNCTIONS = (
     "fit_roi",
 )
 _THREADS = 64
-#: Bytes of ROIs (float64) per batch; device memory holds two batches and their outputs.
+#: Bytes of float64 ROIs per batch; device memory holds two batches and their outputs.
 _BATCH_BYTES = 64 * 2**20
 
 
@@ -83,10 +83,10 @@ def _fit_kernel(npix: int) -> Any:
 class _Slot:
     """Pinned host buffers, device buffers and a stream for one batch of ``size`` ROIs."""
 
-    def __init__(self, size: int, roi_shape: tuple[int, int]) -> None:
+    def __init__(self, size: int, roi_shape: tuple[int, int], dtype: np.dtype) -> None:
         self.stream = cuda.stream()
         self.host_in = (
-            cuda.pinned_array((size, *roi_shape), np.float64),
+            cuda.pinned_array((size, *roi_shape), dtype),
             cuda.pinned_array((size, 7), np.float64),
             cuda.pinned_array(size, np.bool_),
         )
@@ -117,7 +117,8 @@ def fit_batch_cuda(
     *,
     batch: int | None = None,
 ) -> None:
-    """`_kernels.fit_batch` on the GPU, with the same arguments (less ``n_chunks``).
+    """`_kernels.fit_batch` on the GPU, with the same arguments (less ``n_chunks``); ``rois``
+    may also be float32 (the arithmetic stays float64).
 
     ``out`` holds the six output arrays of `fit_batch` (params, errors, loglik, chi2,
     iterations, converged), written in place. ``batch`` (ROIs per batch) defaults to about
@@ -131,7 +132,7 @@ def fit_batch_cuda(
     batch = min(batch, n)
     kernel = _fit_kernel(h * w)
     d_lower, d_upper = cuda.to_device(lower_b), cuda.to_device(upper_b)
-    slots = [_Slot(batch, (h, w)) for _ in range(2 if n > batch else 1)]
+    slots = [_Slot(batch, (h, w), rois.dtype) for _ in range(2 if n > batch else 1)]
     for b, first in enumerate(range(0, n, batch)):
         slot = slots[b % len(slots)]
         _collect(slot, out)
