@@ -24,13 +24,14 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from latentz._shared.validate import check_array, check_int, check_positive
+from latentz._shared.validate import check_int, check_positive
 from latentz.detect import (
     _MAD_TO_SIGMA,
     DEFAULT_THRESHOLD,
     Detections,
     _close_pairs,
     _wide_gaussian_width,
+    check_frames,
     roi_corners,
 )
 
@@ -183,16 +184,8 @@ def detect_arrays_cuda(
     min_distance: int = 2,
 ) -> Detections:
     """:func:`latentz.detect.detect_arrays` on the GPU: same arguments, same `Detections`."""
-    stack = check_array("frames", frames, ndim=(2, 3), dtype_kind="uif")
-    stack = stack[None] if stack.ndim == 2 else stack
-    roi_size = check_int("roi_size", roi_size, minimum=3)
-    if roi_size % 2 == 0:
-        raise ValueError(f"Expected `roi_size` to be odd, got {roi_size}.")
+    stack, roi_size = check_frames(frames, roi_size)
     n_frames, height, width = stack.shape
-    if roi_size > min(height, width):
-        raise ValueError(
-            f"Expected `roi_size` ({roi_size}) to fit in the frames of shape {(height, width)}."
-        )
     threshold = check_positive("threshold", DEFAULT_THRESHOLD if threshold is None else threshold)
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
