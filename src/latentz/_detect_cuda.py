@@ -12,7 +12,7 @@ same emitters:
    ``threshold x noise``; the GPU lists them, the host orders them as ``np.nonzero`` does;
 4. ROI corners and close pairs on the host (a few numbers per spot), the ROIs cut on the GPU.
 
-Frames go through the GPU in batches of bounded size from a pinned host buffer.
+Frames go through the GPU in batches of bounded size from a pinned host buffer, kept between calls.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
+from latentz._cuda_buffers import batch_size, buffer_pair
 from latentz._shared.validate import check_int, check_positive
 from latentz.detect import (
     _MAD_TO_SIGMA,
@@ -189,10 +190,10 @@ def detect_arrays_cuda(
     threshold = check_positive("threshold", DEFAULT_THRESHOLD if threshold is None else threshold)
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
-    batch = max(1, min(n_frames, _BATCH_BYTES // (8 * height * width)))
-    pinned = cuda.pinned_array((batch, height, width), np.float64)
-    d_frames = cuda.device_array_like(pinned)
-    work = tuple(cuda.device_array_like(pinned) for _ in range(3))
+    batch = batch_size(n_frames, _BATCH_BYTES // (8 * height * width))
+    shape = (batch, height, width)
+    pinned, d_frames = buffer_pair("frames", shape, np.float64)
+    work = tuple(buffer_pair(f"band-pass {k}", shape, np.float64)[1] for k in range(3))
     parts = []
     for first in range(0, n_frames, batch):
         m = min(batch, n_frames - first)

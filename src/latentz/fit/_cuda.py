@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numba import cuda, float64
 
+from latentz._cuda_buffers import batch_size, buffer_pair
 from latentz.fit import _kernels
 
 __all__ = ["fit_batch_cuda"]
@@ -81,25 +82,24 @@ def _fit_kernel(npix: int) -> Any:
 
 
 class _Slot:
-    """Pinned host buffers, device buffers and a stream for one batch of ``size`` ROIs."""
+    """Pinned host buffers, device buffers and a stream for one batch of ``size`` ROIs; slot
+    ``index`` of a thread keeps its buffers between calls (:mod:`latentz._cuda_buffers`)."""
 
-    def __init__(self, size: int, roi_shape: tuple[int, int], dtype: np.dtype) -> None:
+    def __init__(self, index: int, size: int, roi_shape: tuple[int, int], dtype: Any) -> None:
         self.stream = cuda.stream()
-        self.host_in = (
-            cuda.pinned_array((size, *roi_shape), dtype),
-            cuda.pinned_array((size, 7), np.float64),
-            cuda.pinned_array(size, np.bool_),
+        inputs = (((size, *roi_shape), dtype), ((size, 7), np.float64), (size, np.bool_))
+        outputs = (
+            ((size, 7), np.float64),
+            ((size, 7), np.float64),
+            (size, np.float64),
+            (size, np.float64),
+            (size, np.int64),
+            (size, np.bool_),
         )
-        self.host_out = (
-            cuda.pinned_array((size, 7), np.float64),
-            cuda.pinned_array((size, 7), np.float64),
-            cuda.pinned_array(size, np.float64),
-            cuda.pinned_array(size, np.float64),
-            cuda.pinned_array(size, np.int64),
-            cuda.pinned_array(size, np.bool_),
-        )
-        self.dev_in = tuple(cuda.device_array_like(a) for a in self.host_in)
-        self.dev_out = tuple(cuda.device_array_like(a) for a in self.host_out)
+        pairs_in = [buffer_pair(f"fit{index} in{k}", *spec) for k, spec in enumerate(inputs)]
+        pairs_out = [buffer_pair(f"fit{index} out{k}", *spec) for k, spec in enumerate(outputs)]
+        self.host_in, self.dev_in = zip(*pairs_in, strict=True)
+        self.host_out, self.dev_out = zip(*pairs_out, strict=True)
         self.pending: tuple[int, int] | None = None
 
 
@@ -121,18 +121,16 @@ def fit_batch_cuda(
     may also be float32 (the arithmetic stays float64).
 
     ``out`` holds the six output arrays of `fit_batch` (params, errors, loglik, chi2,
-    iterations, converged), written in place. ``batch`` (ROIs per batch) defaults to about
-    64 MiB of ROIs.
+    iterations, converged), written in place. ``batch`` caps the ROIs per batch (default about
+    64 MiB of float64 ROIs).
     """
     n, h, w = rois.shape
     if n == 0:
         return
-    if batch is None:
-        batch = max(1, _BATCH_BYTES // (8 * h * w))
-    batch = min(batch, n)
+    batch = batch_size(n, _BATCH_BYTES // (8 * h * w) if batch is None else batch)
     kernel = _fit_kernel(h * w)
     d_lower, d_upper = cuda.to_device(lower_b), cuda.to_device(upper_b)
-    slots = [_Slot(batch, (h, w), rois.dtype) for _ in range(2 if n > batch else 1)]
+    slots = [_Slot(i, batch, (h, w), rois.dtype) for i in range(2 if n > batch else 1)]
     for b, first in enumerate(range(0, n, batch)):
         slot = slots[b % len(slots)]
         _collect(slot, out)
