@@ -94,6 +94,16 @@ def _camera_options(func):
     return func
 
 
+def _device_option(func):
+    return click.option(
+        "--device",
+        default="auto",
+        show_default=True,
+        type=click.Choice(["auto", "cpu", "cuda"]),
+        help="Fit (and detect) on the CPU or an NVIDIA GPU (needs `pip install 'latentz[gpu]'`).",
+    )(func)
+
+
 def _progress(quiet: bool) -> bool:
     return not quiet and sys.stderr.isatty()
 
@@ -128,6 +138,7 @@ def _progress(quiet: bool) -> bool:
     type=click.Path(dir_okay=False, path_type=Path),
     help="Calibration file to write (HDF5).",
 )
+@_device_option
 @_quiet_option
 def calibrate(
     stacks,
@@ -144,13 +155,17 @@ def calibrate(
     field_model,
     n_terms,
     out,
+    device,
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
     from latentz.calibration import calibrate as run_calibration
     from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.pipeline import provenance
+
+    device = resolve_device(device)
 
     camera = camera_from_options(
         camera_file, offset=offset, gain=gain, readnoise=readnoise, pixel_size_nm=pixel_size_nm
@@ -170,6 +185,7 @@ def calibrate(
         progress=_progress(quiet),
         stage_offsets_px=offsets,
         sources=[str(p) for p in stacks],
+        device=device,
     )
     inputs = {"stacks": list(stacks)}
     for role, path in (
@@ -222,6 +238,7 @@ def calibrate(
     help="Exposure of the movies, ms: sets the acquisition rate the speed is compared with.",
 )
 @_camera_options
+@_device_option
 @_quiet_option
 def localize(
     movies,
@@ -239,6 +256,7 @@ def localize(
     gain,
     readnoise,
     pixel_size_nm,
+    device,
     quiet,
 ) -> None:
     """Localize every emitter in 3D with a calibration.
@@ -278,6 +296,7 @@ def localize(
         scheduler=scheduler,
         progress=_progress(quiet),
         camera=camera,
+        device=device,
     )
     achieved_hz = sum(shape[0] for shape in shapes) / (time.perf_counter() - start)
     acquired_hz = frame_rate_hz(exposure_ms, shapes[0][1])
