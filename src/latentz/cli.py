@@ -230,6 +230,13 @@ def calibrate(
 @click.option("--chunk-frames", default=200, show_default=True, help="Frames per chunk.")
 @click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")
 @click.option("--scheduler", default=None, help="dask.distributed scheduler address.")
+@click.option(
+    "--exposure-ms",
+    default=1.0,
+    show_default=True,
+    type=float,
+    help="Exposure of the movies, ms: sets the acquisition rate the speed is compared with.",
+)
 @_camera_options
 @_device_option
 @_quiet_option
@@ -243,6 +250,7 @@ def localize(
     chunk_frames,
     resume,
     scheduler,
+    exposure_ms,
     camera_file,
     offset,
     gain,
@@ -254,9 +262,19 @@ def localize(
     """Localize every emitter in 3D with a calibration.
 
     The movies are read with the calibration's camera; camera options override its values (for
-    movies recorded with another gain or offset).
+    movies recorded with another gain or offset). The achieved frames/s is reported against the
+    global-shutter acquisition rate for the movies' rows at --exposure-ms.
     """
+    import time
+
+    from latentz.io import read_stack
     from latentz.pipeline import localize_movies
+    from latentz.readout import frame_rate_hz
+
+    if exposure_ms <= 0:
+        raise ValueError(f"--exposure-ms must be > 0, got {exposure_ms}.")
+    shapes = [read_stack(m).shape for m in movies]
+    start = time.perf_counter()
 
     camera = {
         "camera_file": camera_file,
@@ -280,7 +298,13 @@ def localize(
         camera=camera,
         device=device,
     )
+    achieved_hz = sum(shape[0] for shape in shapes) / (time.perf_counter() - start)
+    acquired_hz = frame_rate_hz(exposure_ms, shapes[0][1])
     click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
+    click.echo(
+        f"{achieved_hz:.1f} frames/s, {achieved_hz / acquired_hz:.2f}x the acquisition rate "
+        f"({acquired_hz:.1f} Hz: {exposure_ms:g} ms exposure, {shapes[0][1]} rows)"
+    )
 
 
 @main.command()
@@ -300,13 +324,32 @@ def localize(
 @click.option("--memory", default=2, show_default=True, help="Frames a particle may vanish.")
 @click.option("--n-sim", default=10000, show_default=True, help="Monte Carlo simulations.")
 @click.option("--seed", default=0, show_default=True)
+@click.option(
+    "--static",
+    type=click.Path(dir_okay=False),
+    help="Localizations (or a movie, with --calibration) recorded without intentional motion: "
+    "fills Table 1's drift column.",
+)
+@click.option(
+    "--calibration",
+    "cal_path",
+    type=click.Path(dir_okay=False),
+    help="Calibration file, to localize a --static movie.",
+)
 @_quiet_option
-def track(locs, out, search_range_nm, memory, n_sim, seed, quiet) -> None:
+def track(locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, quiet) -> None:
     """Link localizations and measure rigid motion in six degrees of freedom."""
     from latentz.pipeline import track_file
 
     motion = track_file(
-        locs, out, search_range_nm=search_range_nm, memory=memory, n_sim=n_sim, seed=seed
+        locs,
+        out,
+        static=static,
+        calibration=cal_path,
+        search_range_nm=search_range_nm,
+        memory=memory,
+        n_sim=n_sim,
+        seed=seed,
     )
     click.echo(f"{out}: {len(motion)} transitions")
 

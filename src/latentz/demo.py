@@ -337,6 +337,7 @@ def run_demo(
             },
         ),
         sections.motion_section(tracks, motion, unc, tables["table1"]),
+        sections.readout_section(),
         Section("Motion against truth", tables={"Per degree of freedom": within}),
     ]
     write_report(

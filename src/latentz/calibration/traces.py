@@ -1,4 +1,4 @@
-"""Through-focus traces of calibration particles (METHOD.md item 5).
+"""Through-focus traces of calibration particles (paper Methods, Fig. 2).
 
 Each particle is found once per stack, on the maximum projection over z, and followed through focus
 with a ROI that stays fixed: centred on the particle across the stack and never re-detected per
