@@ -23,7 +23,7 @@ from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
-from latentz.io import as_frames
+from latentz.io import as_frames, read_frames
 
 __all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
@@ -79,6 +79,14 @@ def _localize_chunk(
     table["edge"] = edge
     table["close_pair"] = found.close_pair
     return table
+
+
+def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
+    """What a task reads: for a file, its path and frame range (workers open the file
+    themselves, so nothing unpicklable enters the task graph); otherwise the frames' slice."""
+    if isinstance(frames, str | os.PathLike):
+        return dask.delayed(read_frames)(os.fspath(frames), start, stop)
+    return movie[start:stop]
 
 
 def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -194,7 +202,10 @@ def localize(
         with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
             for w0 in range(0, len(spans), width):
                 wave = spans[w0 : w0 + width]
-                tasks = [dask.delayed(_localize_chunk)(movie[a:b], a, *options) for a, b in wave]
+                tasks = [
+                    dask.delayed(_localize_chunk)(_source(frames, movie, a, b), a, *options)
+                    for a, b in wave
+                ]
                 tables.extend(dask.compute(*tasks, scheduler=chosen))
                 bar.update(wave[-1][1] - wave[0][0])
     finally:
