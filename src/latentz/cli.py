@@ -214,6 +214,11 @@ def calibrate(
 @click.option("--chunk-frames", default=200, show_default=True, help="Frames per chunk.")
 @click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")
 @click.option("--scheduler", default=None, help="dask.distributed scheduler address.")
+@click.option(
+    "--track",
+    is_flag=True,
+    help="Tracking mode: fit each emitter where its last positions predict it.",
+)
 @_camera_options
 @_quiet_option
 def localize(
@@ -226,6 +231,7 @@ def localize(
     chunk_frames,
     resume,
     scheduler,
+    track,
     camera_file,
     offset,
     gain,
@@ -260,6 +266,7 @@ def localize(
         scheduler=scheduler,
         progress=_progress(quiet),
         camera=camera,
+        track=track,
     )
     click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
 

@@ -23,7 +23,8 @@ from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
-from latentz.io import as_frames, read_frames
+from latentz.io import as_frames, open_movie, read_frames
+from latentz.tracking import localize_tracked
 
 __all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
@@ -139,6 +140,8 @@ def localize(
     progress: bool = False,
     sigma: float = 1.5,
     chunk_frames: int | None = None,
+    track: bool = False,
+    detect_every: int = 20,
 ) -> pd.DataFrame:
     """Detect and fit every emitter in a movie.
 
@@ -165,6 +168,14 @@ def localize(
     chunk_frames : int, optional
         Frames per task; a few chunks (one per worker thread) are held in memory at once. The
         default keeps a chunk near 64 MB of float64 frames.
+    track : bool
+        Tracking mode (:mod:`latentz.tracking`): fit each emitter in the ROI predicted from its
+        last positions, reading only those ROIs (a TIFF path is memory-mapped); detect whole
+        frames every ``detect_every`` frames and wherever a fit is lost, and the frame's edge
+        band on every frame. Frames run in order in this process (``scheduler`` is not used);
+        ``snr`` is NaN on rows fitted from a prediction.
+    detect_every : int
+        Frames between full detections in tracking mode.
 
     Returns
     -------
@@ -194,8 +205,17 @@ def localize(
                 f"The camera's flatfield {camera.flatfield.shape} does not match the frames "
                 f"{movie.shape[1:]}."
             )
-    chosen, width, client = _scheduler_and_width(scheduler)
     options = (camera, roi_size, threshold, method, sigma)
+    if track:
+        detect_every = check_int("detect_every", detect_every, minimum=1)
+        source = open_movie(frames) if isinstance(frames, str | os.PathLike) else movie
+        return localize_tracked(
+            source,
+            lambda t: _localize_chunk(np.asarray(source[t : t + 1]), t, *options),
+            camera=camera, roi_size=roi_size, threshold=threshold, method=method, sigma=sigma,
+            detect_every=detect_every, progress=progress,
+        )  # fmt: skip
+    chosen, width, client = _scheduler_and_width(scheduler)
     tables = []
     spans = list(_chunks(movie.shape[0], chunk_frames))
     try:

@@ -72,6 +72,7 @@ def localize_movies(
     scheduler: Any = None,
     progress: bool = False,
     camera: dict[str, Any] | None = None,
+    track: bool = False,
 ) -> pd.DataFrame:
     """Localize movies in 3D with a calibration file and write one table with provenance.
 
@@ -83,7 +84,8 @@ def localize_movies(
     ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm``, as
     :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
     gain. Positions are converted to nm with the calibration's pixel size, which its models were
-    made in; a different ``pixel_size_nm`` is warned about.
+    made in; a different ``pixel_size_nm`` is warned about. ``track`` runs
+    :func:`latentz.localize`'s tracking mode within each chunk.
     """
     import dask.array as da
 
@@ -115,6 +117,7 @@ def localize_movies(
         "threshold": threshold,
         "chunk_frames": chunk_frames,
         "camera": movie_camera.as_dict(),
+        "track": track,
     }
     meta = provenance({"movies": movies, "calibration": calibration}, options)
     # the physical sanity checks speak once for the run, not once per chunk
@@ -131,6 +134,7 @@ def localize_movies(
                 roi_size=roi_size,
                 threshold=threshold,
                 scheduler=scheduler,
+                track=track,
             )
             spots["frame"] = spots["frame"] + start
             located = cal.apply(spots)
