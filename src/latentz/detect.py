@@ -23,6 +23,7 @@ import pandas as pd
 from scipy import ndimage
 
 from latentz import _detect_kernels as _k
+from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_int, check_positive
 
 __all__ = [
@@ -45,6 +46,8 @@ _MAD_TO_SIGMA = 1.4826
 #: between them, is a noise ripple on the same spot, not a second emitter.
 _MERGE_RADIUS_SIGMAS = 3.0
 _MERGE_DIP = 2.0
+#: Chunks of fewer pixels are detected on one thread (`one_thread_if`).
+_SMALL_PIXELS = 2**20
 
 
 class Detections(NamedTuple):
@@ -281,7 +284,10 @@ def detect_arrays(
     threshold = check_positive("threshold", threshold)
     sigma = check_positive("sigma", sigma)
     min_distance = check_int("min_distance", min_distance, minimum=1)
-    frame, rows, cols, snr, close = _maxima(stack, threshold, sigma, min_distance, roi_size // 2)
+    with one_thread_if(stack.size < _SMALL_PIXELS):
+        frame, rows, cols, snr, close = _maxima(
+            stack, threshold, sigma, min_distance, roi_size // 2
+        )
     row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
     rois = cut_rois(stack, frame, row0, col0, roi_size)
     return Detections(frame, rows, cols, snr, row0, col0, edge, close, rois)

@@ -50,8 +50,7 @@ def _localize_chunk(
     sigma: float,
 ) -> pd.DataFrame:
     """Detect and fit the frames of one chunk; ``x, y`` in full-frame pixels."""
-    block = np.asarray(block)
-    photons = camera.to_photons(block) if camera is not None else block.astype(np.float64)
+    photons = _photons(np.asarray(block), camera)
     found = detect_arrays(photons, roi_size=roi_size, threshold=threshold, sigma=sigma)
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in LOCALIZE_COLUMNS})
@@ -90,6 +89,17 @@ def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
     return movie[start:stop]
 
 
+def _photons(block: np.ndarray, camera: Camera | None) -> np.ndarray:
+    """Photoelectrons of a chunk, float32 unless the input is float64: detection runs in
+    float32 and ROIs are cut to float64 for the fits, so a float64 copy of the chunk would only
+    cost memory traffic."""
+    if camera is None:
+        return block if block.dtype.kind == "f" else block.astype(np.float32)
+    photons = (block.astype(np.float32) - np.float32(camera.offset)) * np.float32(camera.gain)
+    flat = camera.flatfield_region(block.shape[-2:])
+    return photons if flat is None else photons / flat.astype(np.float32)
+
+
 def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
     out = old.copy()
     out[rows] = new
@@ -105,8 +115,8 @@ def _dtype(column: str) -> str:
 def _scheduler_and_width(scheduler: Any) -> tuple[Any, int, Any]:
     """(scheduler for dask.compute, chunks per wave, client to close when done)."""
     cores = os.cpu_count() or 1
-    if scheduler is None:
-        return "threads", cores, None
+    if scheduler is None:  # the kernels use every core: one chunk at a time is faster here
+        return "synchronous", 1, None
     if isinstance(scheduler, str) and scheduler in _LOCAL_SCHEDULERS:
         return scheduler, 1 if scheduler == "synchronous" else cores, None
     if isinstance(scheduler, str):
@@ -159,7 +169,8 @@ def localize(
     method : {"mle", "wlsq", "lsq"}
         Estimator, see :func:`latentz.fit.fit_rois`.
     scheduler : None, "threads", "processes", "synchronous", str or distributed.Client
-        Where chunks run: None uses local threads; a string with ``://`` is a dask.distributed
+        Where chunks run: None runs them one after another in this process (the numba kernels
+        use every core); a string with ``://`` is a dask.distributed
         scheduler address (a client is opened and closed here).
     progress : bool
         Show a progress bar over frames.

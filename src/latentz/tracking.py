@@ -89,6 +89,13 @@ class _Source:
             photons /= cut_rois(self.camera.flatfield[None], zero, row0, col0, size)
         return photons
 
+    def band(self, t: int, rows: slice, cols: slice) -> np.ndarray:
+        """Photoelectrons of a rectangle of frame ``t``; only its pixels are read."""
+        adu = np.asarray(self.movie[t][rows, cols])
+        if self.camera is None:
+            return adu.astype(np.float64)
+        return self.camera.to_photons(adu, origin=(rows.start, cols.start))
+
 
 def _fit_centred(
     source: _Source, t: int, xy: np.ndarray, size: int, method: str, readnoise: float,
@@ -152,31 +159,29 @@ def _close_pairs(xy: np.ndarray, half: int) -> np.ndarray:
 
 
 def _edge_bands(source: _Source, t: int, size: int, threshold: float, sigma: float) -> np.ndarray:
-    """(x, y) px of detections in the bands of ``size`` px along the frame's four edges."""
+    """(x, y) px of detections in the bands ``size`` px wide along the frame's four edges.
+
+    The left and right bands are transposed to lie like the top and bottom ones, and bands of
+    one length are detected in one call (one per frame for a square frame).
+    """
     h, w = source.shape
-    frame = source.frame(t) if h * w <= 4 * size * (h + w) else None
+    top = source.band(t, slice(0, size), slice(0, w))
+    bottom = source.band(t, slice(h - size, h), slice(0, w))
+    left = source.band(t, slice(0, h), slice(0, size)).T
+    right = source.band(t, slice(0, h), slice(w - size, w)).T
+    # (bands, offset of each band's first row across the frame, transposed)
+    groups = [([top, bottom], [0, h - size], False), ([left, right], [0, w - size], True)]
+    if h == w:
+        groups = [([top, bottom, left, right], [0, h - size, 0, w - size], None)]
     found = []
-    bands = (
-        (slice(0, size), slice(0, w), 0, 0),
-        (slice(h - size, h), slice(0, w), h - size, 0),
-        (slice(0, h), slice(0, size), 0, 0),
-        (slice(0, h), slice(w - size, w), 0, w - size),
-    )
-    for rows, cols, r0, c0 in bands:
-        band = frame[rows, cols] if frame is not None else _band(source, t, rows, cols)
-        if min(band.shape) < size:
-            continue
-        det = detect_arrays(band, roi_size=size, threshold=threshold, sigma=sigma)
-        found.append(np.column_stack([det.col + c0, det.row + r0]).astype(np.float64))
-    return np.concatenate(found) if found else np.empty((0, 2))
-
-
-def _band(source: _Source, t: int, rows: slice, cols: slice) -> np.ndarray:
-    adu = np.asarray(source.movie[t][rows, cols])
-    if source.camera is None:
-        return adu.astype(np.float64)
-    origin = (rows.start, cols.start)
-    return source.camera.to_photons(adu, origin=origin)
+    for bands, offsets, transposed in groups:
+        det = detect_arrays(np.stack(bands), roi_size=size, threshold=threshold, sigma=sigma)
+        across = det.row + np.asarray(offsets)[det.frame]
+        flip = det.frame >= 2 if transposed is None else np.full(len(det.frame), transposed)
+        x = np.where(flip, across, det.col)
+        y = np.where(flip, det.col, across)
+        found.append(np.column_stack([x, y]).astype(np.float64))
+    return np.concatenate(found)
 
 
 def localize_tracked(

@@ -9,6 +9,7 @@ import numba
 import numpy as np
 import pandas as pd
 
+from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.camera import Camera
 from latentz.fit import _kernels
@@ -30,6 +31,8 @@ FIT_COLUMNS = (
 )
 _RHO_MAX = 0.95
 _W_MIN = 0.3
+#: Batches of fewer ROIs are fitted on one thread (`one_thread_if`).
+_SMALL_BATCH = 128
 
 
 class FitResult(NamedTuple):
@@ -141,11 +144,12 @@ def fit_arrays(
     chi2 = np.empty(n)
     iterations = np.empty(n, dtype=np.int64)
     converged = np.empty(n, dtype=np.bool_)
-    _kernels.fit_batch(
-        data, start, use_start, lower, upper, code, s2, max_iter, tol,
-        min(n, 64 * numba.get_num_threads()),
-        params, errors, loglik, chi2, iterations, converged,
-    )  # fmt: skip
+    with one_thread_if(n < _SMALL_BATCH):
+        _kernels.fit_batch(
+            data, start, use_start, lower, upper, code, s2, max_iter, tol,
+            min(n, 64 * numba.get_num_threads()),
+            params, errors, loglik, chi2, iterations, converged,
+        )  # fmt: skip
     return FitResult(params, errors, loglik, chi2, iterations, converged)
 
 
