@@ -94,6 +94,16 @@ def _camera_options(func):
     return func
 
 
+def _device_option(func):
+    return click.option(
+        "--device",
+        default="auto",
+        show_default=True,
+        type=click.Choice(["auto", "cpu", "cuda"]),
+        help="Fit (and detect) on the CPU or an NVIDIA GPU (needs `pip install 'latentz[gpu]'`).",
+    )(func)
+
+
 def _progress(quiet: bool) -> bool:
     return not quiet and sys.stderr.isatty()
 
@@ -128,6 +138,7 @@ def _progress(quiet: bool) -> bool:
     type=click.Path(dir_okay=False, path_type=Path),
     help="Calibration file to write (HDF5).",
 )
+@_device_option
 @_quiet_option
 def calibrate(
     stacks,
@@ -144,13 +155,17 @@ def calibrate(
     field_model,
     n_terms,
     out,
+    device,
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
     from latentz.calibration import calibrate as run_calibration
     from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.pipeline import provenance
+
+    device = resolve_device(device)
 
     camera = camera_from_options(
         camera_file, offset=offset, gain=gain, readnoise=readnoise, pixel_size_nm=pixel_size_nm
@@ -170,6 +185,7 @@ def calibrate(
         progress=_progress(quiet),
         stage_offsets_px=offsets,
         sources=[str(p) for p in stacks],
+        device=device,
     )
     inputs = {"stacks": list(stacks)}
     for role, path in (
@@ -220,6 +236,7 @@ def calibrate(
     help="Tracking mode: fit each emitter where its last positions predict it.",
 )
 @_camera_options
+@_device_option
 @_quiet_option
 def localize(
     movies,
@@ -237,6 +254,7 @@ def localize(
     gain,
     readnoise,
     pixel_size_nm,
+    device,
     quiet,
 ) -> None:
     """Localize every emitter in 3D with a calibration.
@@ -267,6 +285,7 @@ def localize(
         progress=_progress(quiet),
         camera=camera,
         track=track,
+        device=device,
     )
     click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
 

@@ -243,6 +243,20 @@ def cut_rois(
     ].astype(np.float64)
 
 
+def check_frames(frames: Any, roi_size: Any) -> tuple[np.ndarray, int]:
+    """``frames`` as a (t, H, W) array and ``roi_size`` as an odd int that fits in a frame."""
+    stack = check_array("frames", frames, ndim=(2, 3), dtype_kind="uif")
+    stack = stack[None] if stack.ndim == 2 else stack
+    roi_size = check_int("roi_size", roi_size, minimum=3)
+    if roi_size % 2 == 0:
+        raise ValueError(f"Expected `roi_size` to be odd, got {roi_size}.")
+    if roi_size > min(stack.shape[1:]):
+        raise ValueError(
+            f"Expected `roi_size` ({roi_size}) to fit in the frames of shape {stack.shape[1:]}."
+        )
+    return stack, roi_size
+
+
 def detect_arrays(
     frames: Any,
     *,
@@ -269,16 +283,8 @@ def detect_arrays(
     -------
     Detections
     """
-    stack = check_array("frames", frames, ndim=(2, 3), dtype_kind="uif")
-    stack = stack[None] if stack.ndim == 2 else stack
-    roi_size = check_int("roi_size", roi_size, minimum=3)
-    if roi_size % 2 == 0:
-        raise ValueError(f"Expected `roi_size` to be odd, got {roi_size}.")
+    stack, roi_size = check_frames(frames, roi_size)
     _, height, width = stack.shape
-    if roi_size > min(height, width):
-        raise ValueError(
-            f"Expected `roi_size` ({roi_size}) to fit in the frames of shape {(height, width)}."
-        )
     if threshold is None:
         threshold = default_threshold(height, width)
     threshold = check_positive("threshold", threshold)

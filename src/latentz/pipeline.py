@@ -73,6 +73,7 @@ def localize_movies(
     progress: bool = False,
     camera: dict[str, Any] | None = None,
     track: bool = False,
+    device: str = "auto",
 ) -> pd.DataFrame:
     """Localize movies in 3D with a calibration file and write one table with provenance.
 
@@ -85,7 +86,8 @@ def localize_movies(
     :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
     gain. Positions are converted to nm with the calibration's pixel size, which its models were
     made in; a different ``pixel_size_nm`` is warned about. ``track`` runs
-    :func:`latentz.localize`'s tracking mode within each chunk.
+    :func:`latentz.localize`'s tracking mode within each chunk. ``device`` ("auto", "cpu",
+    "cuda") is where detection and fits run (:func:`latentz.engine.resolve_device`).
     """
     import dask.array as da
 
@@ -93,11 +95,13 @@ def localize_movies(
     from latentz.calibration import Calibration
     from latentz.chunked import run_chunked
     from latentz.cli_options import camera_from_options
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.localization import check_camera_offset, localize
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
+    device = resolve_device(device)
     target = Path(out)
     if fmt is None and target.suffix.lower() == ".hdf5":
         fmt = "picasso"
@@ -135,6 +139,7 @@ def localize_movies(
                 threshold=threshold,
                 scheduler=scheduler,
                 track=track,
+                device=device,
             )
             spots["frame"] = spots["frame"] + start
             located = cal.apply(spots)

@@ -26,6 +26,7 @@ from latentz.calibration.shape import SHAPES, astigmatism_angle
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces, extract_traces
 from latentz.camera import Camera
+from latentz.engine import resolve_device
 
 __all__ = ["calibrate", "calibrate_traces"]
 
@@ -78,6 +79,7 @@ def calibrate(
     stage_offsets_px: Any = None,
     threshold: float | None = None,
     method: str = "mle",
+    device: str = "auto",
     **options: Any,
 ) -> Calibration:
     """Calibrate the microscope from through-focus stacks of fluorescent particles.
@@ -110,6 +112,8 @@ def calibrate(
         Detection threshold in photons above the projection's median.
     method : {"mle", "wlsq", "lsq"}
         Gaussian fitting method.
+    device : {"auto", "cpu", "cuda"}
+        Where the fits run: CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``).
     **options
         ``tilt`` (bool, default True): fit and remove the substrate tilt;
         ``cull`` (bool, default True) and ``cull_threshold`` (robust z-score, default 6),
@@ -137,6 +141,7 @@ def calibrate(
     z = _check_z(z_nm, local_options)
     check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_MODELS)
+    device = resolve_device(device)
     if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
         stacks = [stacks]
     loaded = []
@@ -163,6 +168,7 @@ def calibrate(
         threshold=threshold,
         method=method,
         progress=progress,
+        device=device,
     )
     if "field_shape" not in options:
         offsets = np.zeros((len(loaded), 2)) if stage_offsets_px is None else stage_offsets_px
