@@ -25,10 +25,11 @@ two standard deviations) and fits them with, on two threads each:
 
 Timings are the best of ``--rounds`` rounds on the first ``--n-time`` ROIs, the methods taking turns
 in a random order each round (the machine is shared, so the best of many short runs is the stable
-statistic); they include each method's own start / seeds. Precision, from one run over all
-``--n`` ROIs: the standard deviation of error / Cramér–Rao bound for x and y, its robust twin
-(1.4826 x MAD), and the fraction of gross failures (|error| > 5 bounds in x or y, or no finite
-result).
+statistic); they include each method's own start / seeds. ``vs_picasso_per_round`` is the speed
+ratio to Picasso's ROTATED MLE within each round: median (min-max over the rounds).
+Precision, from one run over all ``--n`` ROIs: the standard deviation of error / Cramér–Rao
+bound for x and y, its robust twin (1.4826 x MAD), and the fraction of gross failures
+(|error| > 5 bounds in x or y, or no finite result).
 """
 
 from __future__ import annotations
@@ -173,6 +174,7 @@ def main() -> None:
             for name, run in methods.items()
         }
         best = dict.fromkeys(methods, np.inf)
+        per_round = {name: [] for name in methods}
         order = list(methods)
         rng = np.random.default_rng(0)
         for _ in range(args.rounds):  # speed: best of interleaved rounds, in random order
@@ -181,12 +183,18 @@ def main() -> None:
                 n = min(args.n_scipy if name.startswith("scipy") else args.n_time, args.n)
                 t0 = time.perf_counter()
                 methods[name](rois[:n])
-                best[name] = min(best[name], (time.perf_counter() - t0) / n)
+                per_round[name].append((time.perf_counter() - t0) / n)
+                best[name] = min(best[name], per_round[name][-1])
+        picasso = np.array(per_round["Picasso gaussfit ROTATED mle"])
         for name in methods:
             n = len(results[name])
             stats = precision(results[name], truth[:n], bound[:n])
+            # the ratio to Picasso within each round (same machine state), over the rounds
+            ratio = picasso / np.array(per_round[name])
+            spread = f"{np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f})"
             rows.append({"roi": f"{size}x{size}", "method": name, "n": n,
-                         "fits_per_s": 1.0 / best[name], **stats})  # fmt: skip
+                         "fits_per_s": 1.0 / best[name],
+                         "vs_picasso_per_round": spread, **stats})  # fmt: skip
     table = pd.DataFrame(rows)
     for size in ("7x7", "11x11"):
         sel = table.roi == size

@@ -109,6 +109,24 @@ def test_distributed_client_gives_the_same_table(small):
     pd.testing.assert_frame_equal(table, localize(frames))
 
 
+@pytest.mark.slow
+def test_process_cluster_reads_a_tiff_path_itself_and_gives_the_same_table(small, tmp_path):
+    # issue 14: an open file reader in the task graph cannot be pickled for worker processes;
+    # tasks carry the path and a frame range instead
+    distributed = pytest.importorskip("distributed")
+    frames, _ = small
+    path = tmp_path / "movie.tif"
+    tifffile.imwrite(path, frames.astype(np.float32))
+    with (
+        distributed.LocalCluster(
+            n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        table = localize(path, scheduler=client, chunk_frames=3)
+    pd.testing.assert_frame_equal(table, localize(frames.astype(np.float32)))
+
+
 def test_progress_bar_is_shown_on_request(small, capsys):
     frames, _ = small
     localize(frames, progress=True)

@@ -24,31 +24,27 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
+from latentz import _detect_kernels
 from latentz._cuda_buffers import batch_size, buffer_pair
 from latentz._shared.validate import check_int, check_positive
 from latentz.detect import (
     _MAD_TO_SIGMA,
-    DEFAULT_THRESHOLD,
+    _MERGE_DIP,
+    _MERGE_RADIUS_SIGMAS,
     Detections,
-    _close_pairs,
-    _wide_gaussian_width,
     check_frames,
+    default_threshold,
+    filter_plan,
+    noise_stride,
     roi_corners,
 )
 
 __all__ = ["detect_arrays_cuda"]
 
+
 _THREADS_2D = (8, 32)
 #: Bytes of float64 frames per batch; the device holds about four such buffers.
 _BATCH_BYTES = 128 * 2**20
-
-
-def gaussian_weights(sigma: float) -> np.ndarray:
-    """scipy.ndimage's sampled, normalised Gaussian kernel of ``sigma`` px (truncate 4)."""
-    radius = int(4.0 * sigma + 0.5)
-    x = np.arange(-radius, radius + 1, dtype=np.float64)
-    phi = np.exp(-0.5 / sigma**2 * x**2)
-    return phi / phi.sum()
 
 
 @cuda.jit
@@ -70,10 +66,37 @@ def _correlate(src, dst, weights, axis):
 
 
 @cuda.jit
-def _subtract(a, b, out):
+def _block_means(src, factor, dst):
+    """``dst[t, R, C]``: mean of ``src[t]`` over block ``R, C`` of ``factor`` px (partial blocks
+    at the far edges average the pixels they hold), as `latentz.detect.band_pass`."""
+    t, big, c = cuda.grid(3)
+    n_t, n_i, n_j = src.shape
+    if t >= dst.shape[0] or big >= dst.shape[1] or c >= dst.shape[2]:
+        return
+    acc = 0.0
+    r1 = min(big * factor + factor, n_i)
+    c1 = min(c * factor + factor, n_j)
+    for i in range(big * factor, r1):
+        for j in range(c * factor, c1):
+            acc += src[t, i, j]
+    dst[t, big, c] = acc / ((r1 - big * factor) * (c1 - c * factor))
+
+
+@cuda.jit
+def _subtract_background(small, background, factor, out):
+    """``out = small - background`` read bilinearly at ``(i + 0.5) / factor - 0.5`` (clamped)."""
     t, i, j = cuda.grid(3)
-    if t < out.shape[0] and i < out.shape[1] and j < out.shape[2]:
-        out[t, i, j] = a[t, i, j] - b[t, i, j]
+    if t >= out.shape[0] or i >= out.shape[1] or j >= out.shape[2]:
+        return
+    n_r, n_c = background.shape[1], background.shape[2]
+    y = min(max((i + 0.5) / factor - 0.5, 0.0), n_r - 1.0)
+    x = min(max((j + 0.5) / factor - 0.5, 0.0), n_c - 1.0)
+    r0, c0 = int(math.floor(y)), int(math.floor(x))
+    r1, c1 = min(r0 + 1, n_r - 1), min(c0 + 1, n_c - 1)
+    fy, fx = y - r0, x - c0
+    top = background[t, r0, c0] + fx * (background[t, r0, c1] - background[t, r0, c0])
+    bottom = background[t, r1, c0] + fx * (background[t, r1, c1] - background[t, r1, c0])
+    out[t, i, j] = small[t, i, j] - (top + fy * (bottom - top))
 
 
 @cuda.jit
@@ -119,34 +142,33 @@ def _grid(shape: tuple[int, int, int]) -> tuple[tuple[int, int, int], tuple[int,
 
 
 @functools.cache
-def _filter_weights(sigma: float) -> tuple[Any, Any]:
-    width = _wide_gaussian_width(5.0 * sigma)
-    box = np.full(width, 1.0 / width)
-    if width % 2 == 0:  # scipy centres an even box one pixel left of the middle: pad the right
-        box = np.append(box, 0.0)
-    return cuda.to_device(gaussian_weights(sigma)), cuda.to_device(box)
+def _filter_weights(sigma: float) -> tuple[Any, int, Any]:
+    plan = filter_plan(sigma)
+    return cuda.to_device(plan.weights), plan.factor, cuda.to_device(plan.wide_weights)
 
 
 def _band_pass(d_frames: Any, sigma: float, work: tuple[Any, Any, Any]) -> Any:
-    """Band-passed frames (device array, one of ``work``)."""
-    gauss, box = _filter_weights(sigma)
+    """Band-passed frames (device array, one of ``work``): `latentz.detect.band_pass`."""
+    gauss, factor, wide = _filter_weights(sigma)
     a, b, c = work
     grid, block = _grid(d_frames.shape)
     _correlate[grid, block](d_frames, a, gauss, 1)
     _correlate[grid, block](a, b, gauss, 2)  # b = G(sigma)
-    src = d_frames
-    for _ in range(3):
-        _correlate[grid, block](src, a, box, 1)
-        _correlate[grid, block](a, c, box, 2)
-        src = c
-    _subtract[grid, block](b, c, a)
+    n_t, height, width = d_frames.shape
+    shape = (n_t, -(-height // factor), -(-width // factor))
+    shrunk, blurred = cuda.device_array(shape), cuda.device_array(shape)
+    small_grid, small_block = _grid(shape)
+    _block_means[small_grid, small_block](d_frames, factor, shrunk)
+    _correlate[small_grid, small_block](shrunk, blurred, wide, 1)
+    _correlate[small_grid, small_block](blurred, shrunk, wide, 2)
+    _subtract_background[grid, block](b, shrunk, factor, a)
     return a
 
 
 def _noise(d_filtered: Any) -> np.ndarray:
     """Robust noise of each filtered frame, as `latentz.detect.noise_level`."""
     n_t, height, width = d_filtered.shape
-    step = 2 if height * width > 256 * 256 else 1
+    step = noise_stride((height, width))
     shape = (n_t, -(-height // step), -(-width // step))
     d_sub = cuda.device_array(shape)
     grid, block = _grid(shape)
@@ -154,10 +176,7 @@ def _noise(d_filtered: Any) -> np.ndarray:
     values = d_sub.copy_to_host().reshape(n_t, -1)
     centre = np.median(values, axis=1, keepdims=True)
     noise = _MAD_TO_SIGMA * np.median(np.abs(values - centre), axis=1)
-    # a flat frame: fall back on the standard deviation, as find_peaks does
-    for t in np.flatnonzero(~(noise > 0)):
-        noise[t] = float(np.std(d_filtered[t].copy_to_host())) or 1.0
-    return noise
+    return np.where(noise > 0, noise, 1.0)  # a flat frame, as latentz.detect
 
 
 def _find_peaks(d_filtered: Any, limit: np.ndarray, reach: int) -> np.ndarray:
@@ -187,7 +206,9 @@ def detect_arrays_cuda(
     """:func:`latentz.detect.detect_arrays` on the GPU: same arguments, same `Detections`."""
     stack, roi_size = check_frames(frames, roi_size)
     n_frames, height, width = stack.shape
-    threshold = check_positive("threshold", DEFAULT_THRESHOLD if threshold is None else threshold)
+    if threshold is None:
+        threshold = default_threshold(height, width)
+    threshold = check_positive("threshold", threshold)
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
     batch = batch_size(n_frames, _BATCH_BYTES // (8 * height * width))
@@ -204,12 +225,17 @@ def detect_arrays_cuda(
         noise = _noise(filtered)
         peaks = _find_peaks(filtered, threshold * noise, reach)
         t, rows, cols = np.ascontiguousarray(peaks[:, :3].T, dtype=np.int64)
-        snr = peaks[:, 3] / noise[t]
+        # the maxima of one spot merged and close pairs flagged on the host, as on the CPU
+        keep = np.empty(len(t), np.bool_)
+        close = np.empty(len(t), np.bool_)
+        _detect_kernels.merge_and_pair(
+            filtered.copy_to_host().astype(np.float32), np.searchsorted(t, np.arange(m + 1)),
+            rows, cols, peaks[:, 3].copy(), noise, _MERGE_RADIUS_SIGMAS * sigma, _MERGE_DIP,
+            roi_size // 2, keep, close,
+        )  # fmt: skip
+        t, rows, cols, close, values = t[keep], rows[keep], cols[keep], close[keep], peaks[keep, 3]
+        snr = values / noise[t]
         row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
-        close = np.zeros(len(t), dtype=bool)
-        for frame in np.unique(t):
-            here = t == frame
-            close[here] = _close_pairs(rows[here], cols[here], roi_size // 2)
         rois = np.zeros((len(t), roi_size, roi_size))
         if len(t):
             d_rois = cuda.device_array_like(rois)

@@ -237,6 +237,11 @@ def calibrate(
     type=float,
     help="Exposure of the movies, ms: sets the acquisition rate the speed is compared with.",
 )
+@click.option(
+    "--track",
+    is_flag=True,
+    help="Tracking mode: fit each emitter where its last positions predict it.",
+)
 @_camera_options
 @_device_option
 @_quiet_option
@@ -251,6 +256,7 @@ def localize(
     resume,
     scheduler,
     exposure_ms,
+    track,
     camera_file,
     offset,
     gain,
@@ -296,6 +302,7 @@ def localize(
         scheduler=scheduler,
         progress=_progress(quiet),
         camera=camera,
+        track=track,
         device=device,
     )
     achieved_hz = sum(shape[0] for shape in shapes) / (time.perf_counter() - start)

@@ -18,7 +18,15 @@ import pandas as pd
 from latentz._shared.atomic import atomic_path
 from latentz._shared.validate import check_array
 
-__all__ = ["read_stack", "as_frames", "write_table", "read_table", "TABLE_FORMATS"]
+__all__ = [
+    "read_stack",
+    "open_movie",
+    "read_frames",
+    "as_frames",
+    "write_table",
+    "read_table",
+    "TABLE_FORMATS",
+]
 
 TABLE_FORMATS = ("parquet", "csv")
 _TIFF_SUFFIXES = (".tif", ".tiff", ".ome.tif", ".ome.tiff")
@@ -57,6 +65,29 @@ def read_stack(path: str | os.PathLike) -> da.Array:
             f"{array.shape}."
         )
     return array
+
+
+def open_movie(path: str | os.PathLike) -> np.ndarray | da.Array:
+    """A TIFF movie (n, H, W): memory-mapped when contiguous and uncompressed, so indexing reads
+    only the bytes it touches (a frame range, or a few ROIs of a frame); otherwise the lazy dask
+    array of :func:`read_stack`."""
+    import tifffile
+
+    read_stack(path)  # the checks: exists, a TIFF, complete, 2D or 3D
+    try:
+        frames = tifffile.memmap(path, mode="r")
+    except ValueError:  # compressed or not contiguous
+        return read_stack(path)
+    return frames[None] if frames.ndim == 2 else frames
+
+
+def read_frames(path: str | os.PathLike, start: int, stop: int) -> np.ndarray:
+    """Frames ``start:stop`` of a TIFF movie as a numpy array (file dtype), opened here.
+
+    Opening the file in the caller is what lets a dask.distributed worker read its own frames:
+    a task then carries only the path and the range.
+    """
+    return np.asarray(open_movie(path)[start:stop])
 
 
 def _check_complete(tif, series, source: Path) -> None:

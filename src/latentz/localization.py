@@ -24,7 +24,8 @@ from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.engine import resolve_device
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
-from latentz.io import as_frames
+from latentz.io import as_frames, open_movie, read_frames
+from latentz.tracking import localize_tracked
 
 __all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
@@ -52,8 +53,7 @@ def _localize_chunk(
 ) -> pd.DataFrame:
     """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"); ``x, y`` in
     full-frame pixels."""
-    block = np.asarray(block)
-    photons = camera.to_photons(block) if camera is not None else block.astype(np.float64)
+    photons = _photons(np.asarray(block), camera)
     detector = detect_arrays
     if device == "cuda":
         from latentz._detect_cuda import detect_arrays_cuda as detector
@@ -87,6 +87,25 @@ def _localize_chunk(
     return table
 
 
+def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
+    """What a task reads: for a file, its path and frame range (workers open the file
+    themselves, so nothing unpicklable enters the task graph); otherwise the frames' slice."""
+    if isinstance(frames, str | os.PathLike):
+        return dask.delayed(read_frames)(os.fspath(frames), start, stop)
+    return movie[start:stop]
+
+
+def _photons(block: np.ndarray, camera: Camera | None) -> np.ndarray:
+    """Photoelectrons of a chunk, float32 unless the input is float64: detection runs in
+    float32 and ROIs are cut to float64 for the fits, so a float64 copy of the chunk would only
+    cost memory traffic."""
+    if camera is None:
+        return block if block.dtype.kind == "f" else block.astype(np.float32)
+    photons = (block.astype(np.float32) - np.float32(camera.offset)) * np.float32(camera.gain)
+    flat = camera.flatfield_region(block.shape[-2:])
+    return photons if flat is None else photons / flat.astype(np.float32)
+
+
 def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
     out = old.copy()
     out[rows] = new
@@ -102,8 +121,8 @@ def _dtype(column: str) -> str:
 def _scheduler_and_width(scheduler: Any) -> tuple[Any, int, Any]:
     """(scheduler for dask.compute, chunks per wave, client to close when done)."""
     cores = os.cpu_count() or 1
-    if scheduler is None:
-        return "threads", cores, None
+    if scheduler is None:  # the kernels use every core: one chunk at a time is faster here
+        return "synchronous", 1, None
     if isinstance(scheduler, str) and scheduler in _LOCAL_SCHEDULERS:
         return scheduler, 1 if scheduler == "synchronous" else cores, None
     if isinstance(scheduler, str):
@@ -137,6 +156,8 @@ def localize(
     progress: bool = False,
     sigma: float = 1.5,
     chunk_frames: int | None = None,
+    track: bool = False,
+    detect_every: int = 20,
     device: str = "auto",
 ) -> pd.DataFrame:
     """Detect and fit every emitter in a movie.
@@ -155,7 +176,8 @@ def localize(
     method : {"mle", "wlsq", "lsq"}
         Estimator, see :func:`latentz.fit.fit_rois`.
     scheduler : None, "threads", "processes", "synchronous", str or distributed.Client
-        Where chunks run: None uses local threads; a string with ``://`` is a dask.distributed
+        Where chunks run: None runs them one after another in this process (the numba kernels
+        use every core); a string with ``://`` is a dask.distributed
         scheduler address (a client is opened and closed here).
     progress : bool
         Show a progress bar over frames.
@@ -167,6 +189,14 @@ def localize(
     device : {"auto", "cpu", "cuda"}
         Where detection and fits run (:func:`latentz.engine.resolve_device`); "cuda" uses
         numba's CUDA target (extra ``latentz[gpu]``) and finds the same spots.
+    track : bool
+        Tracking mode (:mod:`latentz.tracking`): fit each emitter in the ROI predicted from its
+        last positions, reading only those ROIs (a TIFF path is memory-mapped); detect whole
+        frames every ``detect_every`` frames and wherever a fit is lost, and the frame's edge
+        band on every frame. Frames run in order in this process (``scheduler`` is not used);
+        ``snr`` is NaN on rows fitted from a prediction.
+    detect_every : int
+        Frames between full detections in tracking mode.
 
     Returns
     -------
@@ -198,15 +228,27 @@ def localize(
                 f"The camera's flatfield {camera.flatfield.shape} does not match the frames "
                 f"{movie.shape[1:]}."
             )
-    chosen, width, client = _scheduler_and_width(scheduler)
     options = (camera, roi_size, threshold, method, sigma, device)
+    if track:
+        detect_every = check_int("detect_every", detect_every, minimum=1)
+        source = open_movie(frames) if isinstance(frames, str | os.PathLike) else movie
+        return localize_tracked(
+            source,
+            lambda t: _localize_chunk(np.asarray(source[t : t + 1]), t, *options),
+            camera=camera, roi_size=roi_size, threshold=threshold, method=method, sigma=sigma,
+            detect_every=detect_every, progress=progress,
+        )  # fmt: skip
+    chosen, width, client = _scheduler_and_width(scheduler)
     tables = []
     spans = list(_chunks(movie.shape[0], chunk_frames))
     try:
         with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
             for w0 in range(0, len(spans), width):
                 wave = spans[w0 : w0 + width]
-                tasks = [dask.delayed(_localize_chunk)(movie[a:b], a, *options) for a, b in wave]
+                tasks = [
+                    dask.delayed(_localize_chunk)(_source(frames, movie, a, b), a, *options)
+                    for a, b in wave
+                ]
                 tables.extend(dask.compute(*tasks, scheduler=chosen))
                 bar.update(wave[-1][1] - wave[0][0])
     finally:

@@ -72,6 +72,7 @@ def localize_movies(
     scheduler: Any = None,
     progress: bool = False,
     camera: dict[str, Any] | None = None,
+    track: bool = False,
     device: str = "auto",
 ) -> pd.DataFrame:
     """Localize movies in 3D with a calibration file and write one table with provenance.
@@ -84,8 +85,9 @@ def localize_movies(
     ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm``, as
     :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
     gain. Positions are converted to nm with the calibration's pixel size, which its models were
-    made in; a different ``pixel_size_nm`` is warned about. ``device`` ("auto", "cpu", "cuda")
-    is where detection and fits run (:func:`latentz.engine.resolve_device`).
+    made in; a different ``pixel_size_nm`` is warned about. ``track`` runs
+    :func:`latentz.localize`'s tracking mode within each chunk. ``device`` ("auto", "cpu",
+    "cuda") is where detection and fits run (:func:`latentz.engine.resolve_device`).
     """
     import dask.array as da
 
@@ -119,6 +121,7 @@ def localize_movies(
         "threshold": threshold,
         "chunk_frames": chunk_frames,
         "camera": movie_camera.as_dict(),
+        "track": track,
     }
     meta = provenance({"movies": movies, "calibration": calibration}, options)
     # the physical sanity checks speak once for the run, not once per chunk
@@ -135,6 +138,7 @@ def localize_movies(
                 roi_size=roi_size,
                 threshold=threshold,
                 scheduler=scheduler,
+                track=track,
                 device=device,
             )
             spots["frame"] = spots["frame"] + start

@@ -90,6 +90,7 @@ def test_cuda_localize_finds_the_same_spots(results):
     assert cpu["edge"].any()
     for column in ("frame", "edge", "close_pair"):
         assert (cpu[column].to_numpy() == gpu[column].to_numpy()).all(), column
-    np.testing.assert_allclose(gpu["snr"], cpu["snr"], rtol=1e-9)
+    # the CPU band-pass runs in float32 (relative rounding ~1e-7 per step), the GPU in float64
+    np.testing.assert_allclose(gpu["snr"], cpu["snr"], rtol=1e-5)
     assert np.abs(gpu[["x", "y"]].to_numpy() - cpu[["x", "y"]].to_numpy()).max() <= POSITION_TOL_PX
     assert (gpu["converged"] == cpu["converged"]).all()

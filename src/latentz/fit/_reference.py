@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from latentz.fit._kernels import LSQ, MLE, WLSQ
+from latentz.fit._kernels import _STEP_FACTOR, LSQ, MLE, WLSQ
 from latentz.fit._model import model_and_jacobian, moment_start
 
 _LAM0 = 1e-3
@@ -86,7 +86,8 @@ def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init
                 if lam > _LAM_MAX:
                     break
                 continue
-            if grad @ delta <= limit and lam <= 1e-2:
+            grad_delta = grad @ delta
+            if grad_delta <= limit and lam <= 1e-2:
                 converged = True
                 break
             p_try = np.clip(p + delta, lower, upper)
@@ -96,8 +97,9 @@ def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init
             if obj_try < obj:
                 decrease = obj - obj_try
                 p, hess, grad, mu_ref, obj = p_try, h_try, g_try, mu_try, obj_try_w
+                small_step = grad_delta <= _STEP_FACTOR * limit and lam <= 1e-2
                 lam = max(lam * 0.1, 1e-7)
-                if decrease <= limit:
+                if decrease <= limit or small_step:
                     converged = True
                     break
             else:

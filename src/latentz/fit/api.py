@@ -9,6 +9,7 @@ import numba
 import numpy as np
 import pandas as pd
 
+from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.camera import Camera
 from latentz.engine import resolve_device
@@ -31,6 +32,8 @@ FIT_COLUMNS = (
 )
 _RHO_MAX = 0.95
 _W_MIN = 0.3
+#: Batches of fewer ROIs are fitted on one thread (`one_thread_if`).
+_SMALL_BATCH = 128
 
 
 class FitResult(NamedTuple):
@@ -155,10 +158,11 @@ def fit_arrays(
 
         fit_batch_cuda(data, start, use_start, lower, upper, code, s2, max_iter, tol, out)
     else:
-        _kernels.fit_batch(
-            data, start, use_start, lower, upper, code, s2, max_iter, tol,
-            min(n, 64 * numba.get_num_threads()), *out,
-        )  # fmt: skip
+        with one_thread_if(n < _SMALL_BATCH):
+            _kernels.fit_batch(
+                data, start, use_start, lower, upper, code, s2, max_iter, tol,
+                min(n, 64 * numba.get_num_threads()), *out,
+            )  # fmt: skip
     return FitResult(params, errors, loglik, chi2, iterations, converged)
 
 
