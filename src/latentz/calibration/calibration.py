@@ -18,9 +18,9 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_widths
 from latentz._shared.validate import check_choice, check_columns
-from latentz.calibration.errors import combine, field_sigma, shape_sigma_full
+from latentz.calibration.errors import combine, covariance_factor, field_sigma
 from latentz.calibration.local import LocalModels, row_mean
-from latentz.calibration.shape import shape_value, uses_amplitude
+from latentz.calibration.shape import shape_sigma, shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
 from latentz.camera import Camera
@@ -321,6 +321,7 @@ class Calibration:
         cols = {c: spots[c].to_numpy(dtype=np.float64) for c in SPOT_COLUMNS}
         located = np.isfinite(cols["x"]) & np.isfinite(cols["y"])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
+        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         model = self.local.shapes[shape]
         theta = self.local.theta
         ref = model.amplitude_ref[p]
@@ -354,15 +355,27 @@ class Calibration:
         z_sigma, z_count, z_slope = self._error_model("z")
         sigma_cal = _interp_rows(self.local.z_nm, z_sigma, p, z)
         model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(z_count[p], 1))
-        if all(c in spots.columns for c in (*_ERROR_COLUMNS, "background")):
-            sigma_s = shape_sigma_full(
+        if all(c in spots.columns for c in _ERROR_COLUMNS):
+            errs = tuple(spots[c].to_numpy(dtype=np.float64) for c in _ERROR_COLUMNS)
+            sigma_s = shape_sigma(
                 shape,
-                spots[list(_PARAMS)].to_numpy(dtype=np.float64),
-                roi_size=int(self.options.get("roi_size") or 11),
-                readnoise=self.camera.readnoise,
+                cols["wx"],
+                cols["wy"],
+                cols["rho"],
+                cols["amplitude"],
+                errs,
                 theta=theta,
                 amplitude_ref=ref,
             )
+            if "background" in spots.columns:  # with the parameters' covariances
+                sigma_s = sigma_s * covariance_factor(
+                    shape,
+                    spots[list(_PARAMS)].to_numpy(dtype=np.float64),
+                    roi_size=int(self.options.get("roi_size") or 11),
+                    readnoise=self.camera.readnoise,
+                    theta=theta,
+                    amplitude_ref=ref,
+                )
             slope = z_slope[p](np.where(in_range, s, 0.0))
             z_err = np.hypot(slope * sigma_s, model_part)
         else:
@@ -379,12 +392,12 @@ class Calibration:
             sigma_d = _interp_rows(self.local.z_nm, d_sigma, p, z)
             model_d = sigma_d * np.sqrt((delta.order + 1) / np.maximum(d_count[p], 1))
             own = spots[f"{axis}_err"].to_numpy(float) if f"{axis}_err" in spots else sigma_d
-            field_d = field_sigma(table, kind, axis, z)  # nm
+            field_d = field_sigma(table, kind, axis, z, distance)  # nm
             err = combine(own * px, model_d * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_err = combine(z_err, field_sigma(table, kind, "z", z))
+        z_err = combine(z_err, field_sigma(table, kind, "z", z, distance))
         out["z_err_nm"] = np.where(in_range, z_err, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p

@@ -25,12 +25,13 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from scipy.spatial import cKDTree
 
 __all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "crossval", "choose_field_model",
            "crossval_summary", "predict", "resolve_auto"]  # fmt: skip
 
-CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "z_nm", "in_range", "err_z_nm", "err_x_nm",
-                    "err_y_nm")  # fmt: skip
+CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
+                    "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
 
 #: Fewer kept particles than this leave no field to model: "auto" takes ``nearest``.
 MIN_FIELD_PARTICLES = 12
@@ -92,7 +93,8 @@ def crossval(
     -------
     DataFrame
         One row per model, held-out particle and plane (:data:`CROSSVAL_COLUMNS`): the particle's
-        position (px) and true z (nm, tilt-corrected), whether the model predicts it, and the
+        position (px), its distance to the nearest particle the model was built from (px), its
+        true z (nm, tilt-corrected), whether the model predicts it, and the
         errors of z, and of the corrected x and y (nm; the lateral error includes the effect of
         the z error on Δx', Δy').
     """
@@ -108,6 +110,8 @@ def crossval(
             keep = np.ones(cal.culled.size, dtype=bool)
             keep[out] = False
             planes = _held_out_planes(cal, out)
+            others = cKDTree(cal.positions[kept[groups != g]])
+            distance = others.query(planes[["x", "y"]].to_numpy())[0]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # a few columns with fewer terms
                 try:
@@ -124,6 +128,7 @@ def crossval(
                         "particle": planes["particle"],
                         "x": planes["x"],
                         "y": planes["y"],
+                        "distance_px": distance,
                         "z_nm": planes["z_nm"],
                         "in_range": ok,
                         "err_z_nm": np.where(ok, z - planes["z_nm"], np.nan),
