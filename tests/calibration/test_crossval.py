@@ -78,6 +78,7 @@ def test_auto_with_too_few_particles_says_so_and_uses_nearest():
         assert cal.field_model == "nearest"
 
 
+@pytest.mark.slow
 def test_auto_calibration_round_trips_with_its_crossval(offset_calibration, tmp_path):
     cal, truth = offset_calibration
     auto = calibrate_traces(cal.traces, shape="rho", field_model="auto", cull=False, tilt=False)
