@@ -99,8 +99,11 @@ def crossval(
         the z error on Δx', Δy').
     """
     kept = cal.kept
-    if kept.size < 2:
-        return pd.DataFrame({c: [] for c in CROSSVAL_COLUMNS})
+    if kept.size < 2:  # nothing to hold out: an empty table of the right types
+        empty = {c: np.zeros(0) for c in CROSSVAL_COLUMNS}
+        empty.update(model=np.zeros(0, dtype=str), particle=np.zeros(0, dtype=np.int64),
+                     in_range=np.zeros(0, dtype=bool))  # fmt: skip
+        return pd.DataFrame(empty)
     px = cal.camera.pixel_size_nm
     groups = np.random.default_rng(seed).permutation(kept.size) % min(n_groups, kept.size)
     parts = []
