@@ -342,6 +342,10 @@ class Calibration:
         if widefield is None:
             in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
             z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
+            lo, hi = self.z_span_nm[p].T
+            with np.errstate(invalid="ignore"):
+                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
+            z = np.where(in_range, z, np.nan)
             shifts = None
         else:  # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
             z, dx_w, dy_w, in_range = widefield(
