@@ -127,9 +127,9 @@ def _progress(quiet: bool) -> bool:
 )
 @click.option(
     "--field-model",
-    default="zernike",
+    default="auto",
     show_default=True,
-    type=click.Choice(["zernike", "natural", "nearest"]),
+    type=click.Choice(["auto", "zernike", "natural", "nearest"]),
 )
 @click.option("--n-terms", default=400, show_default=True, help="Zernike terms.")
 @click.option(

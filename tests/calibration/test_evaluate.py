@@ -20,7 +20,7 @@ def test_evaluate_reports_every_model_axis_and_region(small_microscope):
     assert lateral.max() < 20.0
     assert lateral["nearest"] >= lateral["natural"]
     figures = cal.evaluate_figures()
-    assert len(figures) == 3
+    assert len(figures) == 4 and "Cross-validated errors and reported uncertainties" in figures
 
 
 def test_leave_one_out_of_the_interpolants_equals_a_refit_without_the_particle(small_microscope):

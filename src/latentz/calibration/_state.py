@@ -5,8 +5,10 @@ scalars and options, so it flattens to ``{"group/name": ndarray}``. :func:`save`
 mapping to HDF5 (one dataset per key, options, camera and provenance as JSON attributes) through
 an atomic temporary file; :func:`load` reads it back bit for bit. The widefield models (the
 tables that ``apply`` interpolates) are stored under ``widefield/``, so a loaded calibration applies
-them without re-tabulating. Format 1 files (before the widefield group) are still read: their
-widefield models are rebuilt from the local models, which gives the same tables.
+them without re-tabulating, and the cross-validation tables under ``crossval/`` (format 3), so
+a loaded calibration reports the same uncertainties. Format 1 files (before the widefield group)
+are still read: their widefield models are rebuilt from the local models, which gives the same
+tables; format 1 and 2 files recompute the cross-validation on first use.
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ from latentz._version import __version__
 
 __all__ = ["to_arrays", "from_arrays", "save", "load", "FORMAT"]
 
-FORMAT = "latentz-calibration/2"
-_READABLE = (FORMAT, "latentz-calibration/1")
+FORMAT = "latentz-calibration/3"
+_READABLE = (FORMAT, "latentz-calibration/2", "latentz-calibration/1")
+_CV_TEXT = ("model",)  # cross-validation columns stored as bytes
 
 
 def _poly(prefix: str, model) -> dict[str, np.ndarray]:
@@ -81,12 +84,23 @@ def to_arrays(cal) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     if cal.widefield is not None:
         wide, attrs["widefield"] = cal.widefield.as_arrays()
         arrays.update({f"widefield/{k}": v for k, v in wide.items()})
+    attrs["field_model"] = cal.field_model  # the model "auto" chose
+    cal.crossval_of(cal.field_model)  # the uncertainties need it: always stored
+    kinds = [k[len("crossval/") :] for k in cal._cache if k.startswith("crossval/")]
+    attrs["crossval"] = kinds
+    for kind in kinds:
+        for column, values in cal._cache[f"crossval/{kind}"].items():
+            values = values.to_numpy()
+            arrays[f"crossval/{kind}/{column}"] = (
+                values.astype(str).astype(bytes) if column in _CV_TEXT else values
+            )
     return arrays, attrs
 
 
 def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
     """Rebuild the Calibration that :func:`to_arrays` flattened."""
     from latentz.calibration.calibration import Calibration
+    from latentz.calibration.crossval import CROSSVAL_COLUMNS
     from latentz.calibration.local import LocalModels, ShapeModel
     from latentz.calibration.polymodel import PolyModel
     from latentz.calibration.tilt import TiltPlane
@@ -146,13 +160,20 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
         options=attrs["options"],
         provenance=attrs.get("provenance") or {},
     )
+    if "field_model" in attrs and cal.options.get("field_model") == "auto":
+        cal._cache["chosen_field_model"] = attrs["field_model"]
+    for kind in attrs.get("crossval", []):
+        table = pd.DataFrame(group(f"crossval/{kind}/"))
+        for column in _CV_TEXT:
+            table[column] = [v.decode() for v in table[column]]
+        cal._cache[f"crossval/{kind}"] = table[list(CROSSVAL_COLUMNS)]
     if "widefield" in attrs:
         from latentz.calibration.widefield import WidefieldModel
 
         cal._cache["widefield"] = WidefieldModel.from_arrays(
             group("widefield/"), attrs["widefield"]
         )
-    elif attrs["format"] == FORMAT and cal.field_model != "nearest":
+    elif attrs["format"] != "latentz-calibration/1" and cal.field_model != "nearest":
         raise KeyError("widefield")
     return cal
 

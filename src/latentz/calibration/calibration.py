@@ -20,18 +20,22 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_widths
 from latentz._shared.validate import check_choice, check_columns
+from latentz.calibration.errors import combine, covariance_factor, field_sigma
 from latentz.calibration.local import LocalModels, row_mean
 from latentz.calibration.shape import shape_sigma, shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
 from latentz.camera import Camera
 
-__all__ = ["Calibration", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
+__all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
 
 FIELD_MODELS = ("zernike", "natural", "nearest")
+#: What ``field_model`` accepts: a model, or "auto" (the best by cross-validation).
+FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
 SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
 _ERROR_COLUMNS = ("wx_err", "wy_err", "rho_err", "amplitude_err")
+_PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,8 +119,36 @@ class Calibration:
 
     @property
     def field_model(self) -> str:
-        """How models are carried across the field: "zernike", "natural" or "nearest"."""
-        return self.options.get("field_model", "nearest")
+        """How models are carried across the field: "zernike", "natural" or "nearest".
+
+        For ``field_model="auto"`` the one chosen by cross-validation
+        (:func:`~latentz.calibration.crossval.choose_field_model`) on first use; with fewer than
+        :data:`~latentz.calibration.crossval.MIN_FIELD_PARTICLES` kept particles, "nearest"
+        (with a warning).
+        """
+        asked = self.options.get("field_model", "nearest")
+        if asked != "auto":
+            return asked
+        if "chosen_field_model" not in self._cache:
+            from latentz.calibration.crossval import resolve_auto
+
+            self._cache["chosen_field_model"] = resolve_auto(self)
+        return self._cache["chosen_field_model"]
+
+    @property
+    def crossval(self) -> pd.DataFrame:
+        """Held-out errors of every field model (:func:`~latentz.calibration.crossval.crossval`),
+        computed on first use and stored in the calibration file."""
+        return pd.concat([self.crossval_of(kind) for kind in FIELD_MODELS], ignore_index=True)
+
+    def crossval_of(self, kind: str) -> pd.DataFrame:
+        """The rows of :attr:`crossval` for one field model (computed alone when needed)."""
+        key = f"crossval/{check_choice('kind', kind, FIELD_MODELS)}"
+        if key not in self._cache:
+            from latentz.calibration.crossval import crossval
+
+            self._cache[key] = crossval(self, (kind,))
+        return self._cache[key]
 
     @property
     def widefield(self):
@@ -268,9 +300,9 @@ class Calibration:
 
         z comes from the field model of z(x', y'; s) at the spot's shape value s, and the
         lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
-        ``field_model="nearest"``, from the nearest calibration particle's local models.
-        Uncertainties propagate the nearest particle's local model errors and, when the
-        spots carry them, their own Cramér–Rao errors.
+        ``field_model="nearest"``, from the nearest calibration particle's local models. Uncertainties combine the spots' own Cramér–Rao errors (when they carry them),
+        the nearest particle's local model errors and the field model's cross-validated error
+        (:mod:`latentz.calibration.errors`).
 
         Parameters
         ----------
@@ -296,6 +328,7 @@ class Calibration:
         cols = {c: spots[c].to_numpy(dtype=np.float64) for c in SPOT_COLUMNS}
         located = np.isfinite(cols["x"]) & np.isfinite(cols["y"])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
+        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         model = self.local.shapes[shape]
         theta = self.local.theta
         ref = model.amplitude_ref[p]
@@ -316,8 +349,12 @@ class Calibration:
         if widefield is None:
             in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
             z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
+            lo, hi = self.z_span_nm[p].T
+            with np.errstate(invalid="ignore"):
+                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
+            z = np.where(in_range, z, np.nan)
             shifts = None
-        else:  # field models of z(x', y'; s) and Δx', Δy'(x', y'; z); errors stay local
+        else:  # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
             z, dx_w, dy_w, in_range = widefield(
                 np.where(located, cols["x"], np.nan),
                 np.where(located, cols["y"], np.nan),
@@ -341,6 +378,15 @@ class Calibration:
                 theta=theta,
                 amplitude_ref=ref,
             )
+            if "background" in spots.columns:  # with the parameters' covariances
+                sigma_s = sigma_s * covariance_factor(
+                    shape,
+                    spots[list(_PARAMS)].to_numpy(dtype=np.float64),
+                    roi_size=int(self.options.get("roi_size") or 11),
+                    readnoise=self.camera.readnoise,
+                    theta=theta,
+                    amplitude_ref=ref,
+                )
             slope = z_slope[p](np.where(in_range, s, 0.0))
             z_err = np.hypot(slope * sigma_s, model_part)
         else:
@@ -348,6 +394,8 @@ class Calibration:
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
+        kind = self.field_model
+        table = self.crossval_of(kind)
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             d_sigma, d_count, d_slope = self._error_model(axis)
             shift = delta[p](zq) if shifts is None else shifts[axis]
@@ -355,10 +403,12 @@ class Calibration:
             sigma_d = _interp_rows(self.local.z_nm, d_sigma, p, z)
             model_d = sigma_d * np.sqrt((delta.order + 1) / np.maximum(d_count[p], 1))
             own = spots[f"{axis}_err"].to_numpy(float) if f"{axis}_err" in spots else sigma_d
-            err = np.sqrt(own**2 + model_d**2 + (slope * z_err) ** 2)
+            field_d = field_sigma(table, kind, axis, z, distance)  # nm
+            err = combine(own * px, model_d * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
-            out[f"{axis}_err_nm"] = np.where(in_range, err * px, np.nan)
+            out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
+        z_err = combine(z_err, field_sigma(table, kind, "z", z, distance))
         out["z_err_nm"] = np.where(in_range, z_err, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p

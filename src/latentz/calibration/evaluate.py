@@ -19,7 +19,7 @@ from latentz.calibration.calibration import FIELD_MODELS, Calibration
 from latentz.calibration.fieldmodels import FieldModel, field_errors
 from latentz.calibration.widefield import MIN_PARTICLES, covered_span
 
-__all__ = ["evaluate", "evaluate_figures"]
+__all__ = ["evaluate", "evaluate_figures", "crossval_report"]
 
 
 def _columns(cal: Calibration, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -135,6 +135,7 @@ def evaluate_figures(cal: Calibration) -> dict[str, Any]:
     fig4.tight_layout()
     return {
         "Fig. 5: widefield errors against z": fig5,
+        "Cross-validated errors and reported uncertainties": crossval_report(cal)[1],
         "Supp. Figs. 11-14: error maps and histograms": _figure_error_distributions(
             cal, errors, residuals
         ),
@@ -192,3 +193,55 @@ def _figure_error_distributions(cal: Calibration, errors: pd.DataFrame, residual
     fig.suptitle("Widefield errors (Zernike: fit residuals; interpolants: leave-one-out)")
     fig.tight_layout()
     return fig
+
+
+def crossval_report(cal: Calibration, *, bin_nm: float = 250.0) -> tuple[pd.DataFrame, Any]:
+    """The cross-validated errors of every field model side by side (``cal.crossval``), with
+    the field part of the uncertainty that ``apply`` reports for the chosen model.
+
+    Returns
+    -------
+    (DataFrame, Figure)
+        The table: one row per model with ``rmse_z_nm``, ``rmse_x_nm``, ``rmse_y_nm``,
+        ``rmse_xy_nm``, ``in_range``, ``n`` (:func:`~latentz.calibration.crossval.
+        crossval_summary`), ``chosen`` (the model ``apply`` uses) and ``reported_<axis>_nm``
+        (the RMS over the held-out planes of the field σ that ``apply`` would add there); the
+        figure: RMS held-out error against z per axis and model, dashed the field σ that
+        ``apply`` adds at the typical held-out distance.
+    """
+    import matplotlib.pyplot as plt
+
+    from latentz.calibration.crossval import crossval_summary
+    from latentz.calibration.errors import field_sigma
+
+    table = cal.crossval
+    summary = crossval_summary(table)
+    summary["chosen"] = summary.index == cal.field_model
+    for axis in "xyz":
+        reported = []
+        for kind in summary.index:
+            rows = table[(table["model"] == kind) & table["in_range"]]
+            sigma = field_sigma(table, kind, axis, rows["z_nm"], rows["distance_px"])
+            reported.append(float(np.sqrt(np.mean(sigma**2))) if sigma.size else np.nan)
+        summary[f"reported_{axis}_nm"] = reported
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), sharex=True)
+    for ax, axis in zip(axes, "xyz", strict=True):
+        for kind, rows in table[table["in_range"]].groupby("model"):
+            z = rows["z_nm"].to_numpy()
+            edges = np.arange(np.min(z), np.max(z) + bin_nm, bin_nm)
+            which = np.digitize(z, edges)
+            err2 = rows[f"err_{axis}_nm"].to_numpy() ** 2
+            centres = [z[which == k].mean() for k in np.unique(which)]
+            rms = [np.sqrt(err2[which == k].mean()) for k in np.unique(which)]
+            (line,) = ax.plot(centres, rms, label=kind)
+            grid = np.linspace(np.min(z), np.max(z), 100)
+            typical = np.sqrt(np.mean(rows["distance_px"] ** 2))
+            sigma = field_sigma(table, kind, axis, grid, np.full(grid.size, typical))
+            ax.plot(grid, sigma, "--", color=line.get_color())
+        ax.set(xlabel="z (nm)", ylabel=f"{axis}: RMS held-out error (nm)", yscale="log")
+    axes[0].legend(title=f"apply uses {cal.field_model}")
+    fig.suptitle(
+        "Leave-one-particle-out errors of each field model (dashed: the field σ apply adds)"
+    )
+    fig.tight_layout()
+    return summary, fig

@@ -4,7 +4,6 @@
 :class:`~latentz.calibration.calibration.Calibration`: traces of every particle, its local models
 (z_f, Δx'(z), Δy'(z), z(shape) with σ's), culling of defective particles, and removal of the
 substrate tilt so that z = 0 is the focal surface of the calibration particles after levelling.
-Only ``field_model="nearest"`` is available until the widefield stage is integrated.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ import pandas as pd
 
 from latentz._shared.sanity import LatentzWarning, check_z_step
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
-from latentz.calibration.calibration import FIELD_MODELS, PAPER_SHAPES, Calibration
+from latentz.calibration.calibration import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
 from latentz.calibration.local import LocalOptions, fit_local
@@ -72,7 +71,7 @@ def calibrate(
     *,
     camera: Camera | None = None,
     shape: str = "rho_A",
-    field_model: str = "zernike",
+    field_model: str = "auto",
     n_terms: int = 400,
     progress: bool = False,
     roi_size: int = 15,
@@ -95,10 +94,10 @@ def calibrate(
         Camera model (default ``Camera()``); its pixel size converts positions to nm.
     shape : {"rho", "rho_w", "rho_A", "auto", "auto_A"}
         Shape parameter for axial localization (paper eqs. 4–6; "auto" for any astigmatism angle).
-    field_model : {"zernike", "natural", "nearest"}
-        How the local models are carried across the field (Supp. Table 2): Zernike
-        polynomials fitted by least squares, natural-neighbour or nearest-neighbour
-        interpolation.
+    field_model : {"auto", "zernike", "natural", "nearest"}
+        How models are carried across the field. "auto" (default): the best by leave-one-
+        particle-out cross-validation of the whole prediction, never worse than "nearest"
+        (:mod:`latentz.calibration.crossval`); chosen on first use (``cal.field_model``).
     n_terms : int
         Number of Zernike terms (for ``field_model="zernike"``).
     progress : bool
@@ -141,7 +140,7 @@ def calibrate(
     local_options = _local_options(dict(options))
     z = _check_z(z_nm, local_options)
     check_choice("shape", shape, SHAPES)
-    check_choice("field_model", field_model, FIELD_MODELS)
+    check_choice("field_model", field_model, FIELD_CHOICES)
     device = resolve_device(device)
     if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
         stacks = [stacks]
@@ -194,7 +193,7 @@ def calibrate_traces(
     *,
     camera: Camera | None = None,
     shape: str = "rho_A",
-    field_model: str = "zernike",
+    field_model: str = "auto",
     n_terms: int = 400,
     tilt: bool = True,
     cull: bool = True,
@@ -218,7 +217,7 @@ def calibrate_traces(
     if np.any(np.diff(traces.z_nm) <= 0):
         raise ValueError("Expected the traces' `z_nm` to be strictly increasing.")
     check_choice("shape", shape, SHAPES)
-    check_choice("field_model", field_model, FIELD_MODELS)
+    check_choice("field_model", field_model, FIELD_CHOICES)
     n_terms = check_int("n_terms", n_terms, minimum=1)
     cull_threshold = check_positive("cull_threshold", cull_threshold)
     neighbours = check_int("neighbours", neighbours, minimum=1)

@@ -1,0 +1,193 @@
+"""Cross-validation of the whole widefield prediction, and the choice of field model.
+
+A field model is judged where it is used: between calibration particles. Each kept particle is
+held out in turn, the widefield model is built from the others, and the held-out particle's own
+calibration is predicted at its place: for every plane of its monotonic range, z from its shape
+value s(z) (its own smoothed forward model), then Δx', Δy' at the predicted z. The errors
+(predicted minus its own local models, nm) are the field model's error alone; the fit's
+precision and the local model's σ are accounted separately (:mod:`latentz.calibration.errors`).
+
+To keep the cost at a few model builds, particles are held out in ``n_groups`` groups spread over
+the field (every ``n_groups``-th particle in a random order): each build then uses
+``1 − 1/n_groups`` of the particles, so the errors are those of a slightly sparser calibration
+(conservative by a few percent for 16 groups).
+
+:func:`choose_field_model` picks the model with the smallest cross-validated z RMSE among those
+no worse than ``nearest`` in z, in lateral RMSE and in coverage (the fraction of held-out planes
+it predicts); ``nearest`` is always eligible, so the choice is never worse than it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+__all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "crossval", "choose_field_model",
+           "crossval_summary", "predict", "resolve_auto"]  # fmt: skip
+
+CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
+                    "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
+
+#: Fewer kept particles than this leave no field to model: "auto" takes ``nearest``.
+MIN_FIELD_PARTICLES = 12
+
+
+def _subset(cal: Any, keep: np.ndarray, kind: str) -> Any:
+    """The calibration restricted to the particles ``keep`` (bool, n) with field model ``kind``."""
+    options = {**cal.options, "field_model": kind}
+    return replace(cal, culled=cal.culled | ~keep, options=options, _cache={})
+
+
+def predict(cal: Any, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tuple:
+    """z (nm), Δx', Δy' (px) and in_range for shape values ``s`` at (x, y) with ``cal``'s field
+    model, as :meth:`Calibration.apply` computes them."""
+    wide = cal.widefield
+    if wide is not None:
+        z, dx, dy, ok = wide(x_px, y_px, s, iterations=cal.options.get("iterations", 0))
+        return z, dx, dy, ok
+    p = cal.nearest(x_px, y_px)
+    inverse = cal.local.shapes[cal.shape].inverse[p]
+    ok = inverse.contains(s) & inverse.valid & np.isfinite(s)
+    z = np.where(ok, inverse(np.where(ok, s, 0.0)), np.nan)
+    lo, hi = cal.z_span_nm[p].T
+    with np.errstate(invalid="ignore"):
+        ok &= (z >= lo) & (z <= hi)  # never extrapolated, as Calibration.local_z
+    z = np.where(ok, z, np.nan)
+    zq = np.where(ok, z, 0.0)
+    return z, cal.local.dx[p](zq), cal.local.dy[p](zq), ok
+
+
+def _held_out_planes(cal: Any, particles: np.ndarray) -> pd.DataFrame:
+    """Every plane of each particle's monotonic range: its z, s(z) and Δx'(z), Δy'(z)."""
+    model = cal.local.shapes[cal.shape]
+    z = cal.local.z_nm[particles]
+    lo, hi = model.z_range[particles, 0:1], model.z_range[particles, 1:2]
+    inside = (z >= lo) & (z <= hi)
+    rows, cols = np.nonzero(inside)
+    p = particles[rows]
+    zz = z[rows, cols]
+    return pd.DataFrame(
+        {
+            "particle": p,
+            "x": cal.positions[p, 0],
+            "y": cal.positions[p, 1],
+            "z_nm": zz,
+            "s": model.forward[p](zz),
+            "dx": cal.local.dx[p](zz),
+            "dy": cal.local.dy[p](zz),
+        }
+    )
+
+
+def crossval(
+    cal: Any,
+    kinds: tuple[str, ...] = ("nearest", "natural", "zernike"),
+    *,
+    n_groups: int = 16,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """Held-out errors of every field model in ``kinds`` (module notes).
+
+    Returns
+    -------
+    DataFrame
+        One row per model, held-out particle and plane (:data:`CROSSVAL_COLUMNS`): the particle's
+        position (px), its distance to the nearest particle the model was built from (px), its
+        true z (nm, tilt-corrected), whether the model predicts it, and the
+        errors of z, and of the corrected x and y (nm; the lateral error includes the effect of
+        the z error on Δx', Δy').
+    """
+    kept = cal.kept
+    if kept.size < 2:  # nothing to hold out: an empty table of the right types
+        empty = {c: np.zeros(0) for c in CROSSVAL_COLUMNS}
+        empty.update(model=np.zeros(0, dtype=str), particle=np.zeros(0, dtype=np.int64),
+                     in_range=np.zeros(0, dtype=bool))  # fmt: skip
+        return pd.DataFrame(empty)
+    px = cal.camera.pixel_size_nm
+    groups = np.random.default_rng(seed).permutation(kept.size) % min(n_groups, kept.size)
+    parts = []
+    for kind in kinds:
+        for g in np.unique(groups):
+            out = kept[groups == g]
+            keep = np.ones(cal.culled.size, dtype=bool)
+            keep[out] = False
+            planes = _held_out_planes(cal, out)
+            others = cKDTree(cal.positions[kept[groups != g]])
+            distance = others.query(planes[["x", "y"]].to_numpy())[0]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # a few columns with fewer terms
+                try:
+                    z, dx, dy, ok = predict(
+                        _subset(cal, keep, kind), planes["x"], planes["y"], planes["s"]
+                    )
+                except ValueError:  # too few particles left for this model
+                    z = dx = dy = np.full(len(planes), np.nan)
+                    ok = np.zeros(len(planes), dtype=bool)
+            parts.append(
+                pd.DataFrame(
+                    {
+                        "model": kind,
+                        "particle": planes["particle"],
+                        "x": planes["x"],
+                        "y": planes["y"],
+                        "distance_px": distance,
+                        "z_nm": planes["z_nm"],
+                        "in_range": ok,
+                        "err_z_nm": np.where(ok, z - planes["z_nm"], np.nan),
+                        "err_x_nm": np.where(ok, (planes["dx"] - dx) * px, np.nan),
+                        "err_y_nm": np.where(ok, (planes["dy"] - dy) * px, np.nan),
+                    }
+                )
+            )
+    return pd.concat(parts, ignore_index=True)
+
+
+def crossval_summary(table: pd.DataFrame) -> pd.DataFrame:
+    """Per model: ``rmse_z_nm``, ``rmse_x_nm``, ``rmse_y_nm``, ``rmse_xy_nm`` (x and y pooled)
+    of the predicted planes, their fraction ``in_range`` and the count ``n``."""
+    rows = {}
+    for kind, part in table.groupby("model", sort=False):
+        used = part[part["in_range"]]
+        rms = {a: float(np.sqrt(np.mean(used[f"err_{a}_nm"] ** 2))) for a in "xyz"}
+        rows[kind] = {
+            "rmse_z_nm": rms["z"],
+            "rmse_x_nm": rms["x"],
+            "rmse_y_nm": rms["y"],
+            "rmse_xy_nm": float(np.sqrt((rms["x"] ** 2 + rms["y"] ** 2) / 2)),
+            "in_range": float(part["in_range"].mean()),
+            "n": len(used),
+        }
+    return pd.DataFrame.from_dict(rows, orient="index").rename_axis("model")
+
+
+def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
+    """The model with the smallest z RMSE among those no worse than ``nearest`` in z and lateral
+    RMSE, that predict at least ``coverage`` x as many held-out planes as it."""
+    base = summary.loc["nearest"]
+    eligible = summary[
+        (summary["rmse_z_nm"] <= base["rmse_z_nm"])
+        & (summary["rmse_xy_nm"] <= base["rmse_xy_nm"])
+        & (summary["in_range"] >= coverage * base["in_range"])
+    ]
+    if eligible.empty:
+        return "nearest"
+    return str(eligible["rmse_z_nm"].idxmin())
+
+
+def resolve_auto(cal: Any) -> str:
+    """``field_model="auto"``: the model :func:`choose_field_model` picks from ``cal.crossval``;
+    "nearest", with a warning, below :data:`MIN_FIELD_PARTICLES` kept particles."""
+    if cal.kept.size < MIN_FIELD_PARTICLES:
+        warnings.warn(
+            f"field_model='auto': only {cal.kept.size} kept calibration particles (a field model "
+            f"needs {MIN_FIELD_PARTICLES}); using 'nearest'.",
+            UserWarning,
+            stacklevel=3,
+        )
+        return "nearest"
+    return choose_field_model(crossval_summary(cal.crossval))

@@ -1,0 +1,223 @@
+"""Calibration stacks and test frames from the validation microscope, with their ground truth.
+
+Calibration: beads on a tilted substrate in through-focus stacks (one piezo z list for every
+stack), each stack holding its own particles on a jittered grid. Test: point emitters at other
+places in the field (on their own jittered grid, offset from the calibration particles'), each
+with its own brightness and its own defocus in every frame. Images are expected photons (the
+optics, a uniform background) turned into ADU by Poisson shot noise, Gaussian read noise, a gain
+and an offset.
+
+Axial truth is the emitter's defocus from the curved focal surface, ``a``; the calibration's
+z = 0 is the calibration beads' surface of best focus after a plane is removed, so the true
+calibrated z of a test spot is ``a`` plus the best-focus offset at its place, minus that plane
+(:func:`latentz.validation.truth.score`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from latentz.camera import Camera
+from latentz.validation.fields import AberrationFields
+from latentz.validation.microscope import Microscope, bead_slices
+
+__all__ = ["SIZES", "ValidationData", "make_data", "render_patches"]
+
+#: The study sizes: "full" is issue 12's microscope, "small" runs in seconds for the tests.
+SIZES = {
+    "full": {
+        "field_px": 256,
+        "grid": 8,
+        "n_stacks": 2,
+        "z_half_nm": 3000.0,
+        "z_step_nm": 50.0,
+        "photons": 2e5,
+        "n_test": 60,
+        "n_frames": 10,
+        "test_half_nm": 2000.0,
+        "patch_px": 31,
+    },
+    "small": {
+        "field_px": 128,
+        "grid": 4,
+        "n_stacks": 2,
+        "z_half_nm": 2000.0,
+        "z_step_nm": 100.0,
+        "photons": 2e5,
+        "n_test": 16,
+        "n_frames": 6,
+        "test_half_nm": 1500.0,
+        "patch_px": 23,
+    },
+}
+
+
+@dataclass(frozen=True, eq=False)
+class ValidationData:
+    """Images and truth of one validation study.
+
+    Attributes
+    ----------
+    microscope : Microscope
+    fields : AberrationFields
+    camera : Camera
+        The camera that made the ADU (offset, gain, read noise, pixel size).
+    stacks : list of ndarray (n_z, H, W)
+        Calibration stacks, ADU.
+    expected : list of ndarray (n_z, H, W)
+        The same stacks without noise, photons (for the truth's best focus).
+    z_nm : ndarray (n_z,)
+        Piezo position of each calibration plane.
+    calibration_truth : DataFrame
+        ``particle``, ``stack``, ``x``, ``y`` (field px), ``photons``, ``substrate_nm``.
+    frames : ndarray (n_frames, H, W)
+        Test frames, ADU.
+    test_truth : DataFrame
+        One row per test spot: ``emitter``, ``frame``, ``x``, ``y`` (px), ``photons``,
+        ``defocus_nm`` (from the focal surface).
+    background : float
+        Photons per pixel.
+    bead_nm : float
+        Calibration bead diameter.
+    """
+
+    microscope: Microscope
+    fields: AberrationFields
+    camera: Camera
+    stacks: list[np.ndarray]
+    expected: list[np.ndarray]
+    z_nm: np.ndarray
+    calibration_truth: pd.DataFrame
+    frames: np.ndarray
+    test_truth: pd.DataFrame
+    background: float
+    bead_nm: float
+
+
+def _grid(n_side: int, field_px: int, shift: float, jitter: float, rng) -> np.ndarray:
+    """(n_side², 2) jittered grid points (x, y) in pixels, at ``shift`` of a cell."""
+    cell = field_px / n_side
+    i, j = np.meshgrid(np.arange(n_side), np.arange(n_side), indexing="xy")
+    base = np.column_stack([i.ravel(), j.ravel()]) + shift
+    return (base + rng.uniform(-jitter, jitter, base.shape)) * cell
+
+
+def render_patches(
+    microscope: Microscope,
+    fields: AberrationFields,
+    x_px: float,
+    y_px: float,
+    defocus_nm: np.ndarray,
+    size: int,
+    *,
+    bead_nm: float = 0.0,
+) -> np.ndarray:
+    """(m, size, size) expected photon fraction of one emitter at (x, y) for each defocus,
+    centred on the pixel nearest the emitter; the patch shrinks where the spot is small."""
+    wave = microscope.wavefront_nm(fields.coefficients([x_px], [y_px])[0])
+    offsets, weights = bead_slices(bead_nm)
+    dx, dy = x_px - np.rint(x_px), y_px - np.rint(y_px)
+    out = np.zeros((len(defocus_nm), size, size))
+    slope = microscope.na / np.sqrt(microscope.n_medium**2 - microscope.na**2)
+    radius_px = np.abs(defocus_nm) * slope / microscope.pixel_size_nm
+    need = np.minimum(2 * (np.ceil(radius_px).astype(int) + 5) + 1, size)
+    for patch in np.unique(need):
+        rows = np.flatnonzero(need == patch)
+        for chunk in np.array_split(rows, max(1, rows.size // 8)):
+            planes = (defocus_nm[chunk][:, None] + offsets[None, :]).ravel()
+            img = microscope.pixel_image(dx, dy, wave, planes, patch)
+            img = np.einsum("msij,s->mij", img.reshape(chunk.size, offsets.size, patch, patch),
+                            weights)  # fmt: skip
+            lo = size // 2 - patch // 2
+            out[chunk, lo : lo + patch, lo : lo + patch] = img
+    return out
+
+
+def _add(frame: np.ndarray, patch: np.ndarray, x_px: float, y_px: float) -> None:
+    """Add ``patch`` centred on the pixel nearest (x, y), clipped at the frame's edges."""
+    size = patch.shape[-1]
+    r0, c0 = int(np.rint(y_px)) - size // 2, int(np.rint(x_px)) - size // 2
+    h, w = frame.shape[-2:]
+    rs, cs = slice(max(r0, 0), min(r0 + size, h)), slice(max(c0, 0), min(c0 + size, w))
+    frame[..., rs, cs] += patch[..., rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
+
+
+def _to_adu(photons: np.ndarray, camera: Camera, rng) -> np.ndarray:
+    electrons = rng.poisson(photons) + rng.normal(0.0, camera.readnoise, photons.shape)
+    return electrons / camera.gain + camera.offset
+
+
+def make_data(
+    size: str = "small",
+    *,
+    seed: int = 0,
+    microscope: Microscope | None = None,
+    fields: AberrationFields | None = None,
+    camera: Camera | None = None,
+    background: float = 2.0,
+    bead_nm: float = 100.0,
+    test_photons: tuple[float, float] = (1e3, 1e4),
+) -> ValidationData:
+    """Simulate one study of the given :data:`SIZES` entry (``seed`` fixes everything).
+
+    Test emitters have log-uniform photon counts in ``test_photons`` and a uniform defocus
+    within the size's ``test_half_nm`` in every frame.
+    """
+    if size not in SIZES:
+        raise ValueError(f"Expected `size` to be one of {tuple(SIZES)}, got {size!r}.")
+    p = SIZES[size]
+    rng = np.random.default_rng(seed)
+    microscope = Microscope() if microscope is None else microscope
+    n = p["field_px"]
+    if fields is None:
+        fields = AberrationFields.random((n, n), seed=seed, pixel_size_nm=microscope.pixel_size_nm)
+    if camera is None:
+        camera = Camera(offset=100.0, gain=0.5, readnoise=1.5,
+                        pixel_size_nm=microscope.pixel_size_nm)  # fmt: skip
+    z = np.arange(-p["z_half_nm"], p["z_half_nm"] + p["z_step_nm"] / 2, p["z_step_nm"])
+    size_px = p["patch_px"]
+    stacks, clean, rows = [], [], []
+    for k in range(p["n_stacks"]):
+        shift = 0.25 + 0.5 * k / max(p["n_stacks"] - 1, 1)
+        points = _grid(p["grid"], n, shift, 0.1, rng)
+        expected = np.full((z.size, n, n), float(background))
+        for x, y in points:
+            height = float(fields.substrate_nm(x, y))
+            defocus = height + z - fields.focal_surface_nm(x, y)
+            patch = render_patches(microscope, fields, x, y, defocus, size_px, bead_nm=bead_nm)
+            _add(expected, p["photons"] * patch, x, y)
+            rows.append((len(rows), k, x, y, p["photons"], height))
+        stacks.append(_to_adu(expected, camera, rng))
+        clean.append(expected)
+    cal_truth = pd.DataFrame(rows, columns=["particle", "stack", "x", "y", "photons",
+                                            "substrate_nm"])  # fmt: skip
+    points = _grid(p["grid"], n, 0.5, 0.12, rng)
+    points = points[rng.choice(len(points), min(p["n_test"], len(points)), replace=False)]
+    lo, hi = np.log(test_photons[0]), np.log(test_photons[1])
+    photons = np.exp(rng.uniform(lo, hi, len(points)))
+    defocus = rng.uniform(-p["test_half_nm"], p["test_half_nm"], (len(points), p["n_frames"]))
+    expected = np.full((p["n_frames"], n, n), float(background))
+    test_rows = []
+    for e, (x, y) in enumerate(points):
+        patch = render_patches(microscope, fields, x, y, defocus[e], size_px)
+        _add(expected, photons[e] * patch, x, y)
+        for f in range(p["n_frames"]):
+            test_rows.append((e, f, x, y, photons[e], defocus[e, f]))
+    test_truth = pd.DataFrame(test_rows, columns=["emitter", "frame", "x", "y", "photons",
+                                                  "defocus_nm"])  # fmt: skip
+    return ValidationData(
+        microscope=microscope,
+        fields=fields,
+        camera=camera,
+        stacks=stacks,
+        expected=clean,
+        z_nm=z,
+        calibration_truth=cal_truth,
+        frames=_to_adu(expected, camera, rng),
+        test_truth=test_truth,
+        background=float(background),
+        bead_nm=float(bead_nm),
+    )

@@ -1,0 +1,155 @@
+"""Ground truth for the validation microscope, in the calibration's conventions, and scoring.
+
+Two conventions of latentz define what a "true" localization is (docs/conventions.md), and
+they are definitions rather than models, so they are computed here from noise-free images:
+
+- best focus is the peak of the fitted Gaussian amplitude A over defocus (:func:`focus_of`),
+  and z = 0 is the calibration particles' surface of best focus (piezo z) after a
+  least-squares plane is removed; so the true z of a test spot is its defocus from the focal
+  surface plus the focal surface's height there, minus the plane through the beads' piezo
+  best focus plus their substrate height (the substrate's tilt cancels);
+- the true lateral position is where the emitter appears at its own best focus (the paper's
+  Fig. 2a), fitted in the ROI that ``localize`` uses.
+
+Both fit noise-free images with :func:`latentz.fit.fit_rois`, as the calibration does; the images
+come from this package's optics.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from latentz.validation.datasets import ValidationData, _add, render_patches
+
+__all__ = ["best_focus", "focus_of", "localize_test", "score", "study_truth"]
+
+
+def focus_of(z_nm: np.ndarray, amplitude: np.ndarray, *, fraction: float = 0.6) -> float:
+    """Best focus by the calibration's definition: the peak of an order-5 polynomial fitted to
+    the amplitude over the contiguous planes around its maximum where A >= ``fraction`` x max."""
+    top = int(np.nanargmax(amplitude))
+    low = amplitude < fraction * amplitude[top]
+    left = max([i + 1 for i in range(top) if low[i]], default=0)
+    right = min([i - 1 for i in range(top + 1, z_nm.size) if low[i]], default=z_nm.size - 1)
+    left, right = min(left, max(top - 4, 0)), max(right, min(top + 4, z_nm.size - 1))
+    z, a = z_nm[left : right + 1], amplitude[left : right + 1]
+    poly = np.polynomial.Polynomial.fit(z, a, min(5, z.size - 1))
+    fine = np.linspace(z[0], z[-1], 2001)
+    return float(fine[np.argmax(poly(fine))])
+
+
+def _fit_at(images: np.ndarray, x_px: float, y_px: float, roi_size: int) -> pd.DataFrame:
+    """Fits (field pixels) of noise-free ``images`` (m, H, W) photons in the ROI that
+    ``localize`` would centre on (x, y), moved inside the frame at its edges."""
+    from latentz.fit import fit_rois
+
+    half = roi_size // 2
+    h, w = images.shape[1:]
+    r0 = int(np.clip(np.rint(y_px) - half, 0, h - roi_size))
+    c0 = int(np.clip(np.rint(x_px) - half, 0, w - roi_size))
+    fit = fit_rois(images[:, r0 : r0 + roi_size, c0 : c0 + roi_size])
+    return fit.assign(x=fit["x"] + c0, y=fit["y"] + r0)
+
+
+def best_focus(
+    data: ValidationData,
+    *,
+    roi_size: int,
+    span_nm: float = 1500.0,
+    step_nm: float = 50.0,
+) -> tuple[np.ndarray, pd.DataFrame]:
+    """Best focus of the calibration beads and of the test emitters (:func:`focus_of`).
+
+    Returns the beads' piezo z of best focus (one per ``calibration_truth`` row, from the
+    noise-free stacks) and, per test emitter, its defocus of best focus (``focus_nm``, from the
+    focal surface) and its apparent position there (``focus_x``, ``focus_y``, px), from
+    noise-free images every ``step_nm`` within ±``span_nm``.
+    """
+    cal = data.calibration_truth
+    beads = np.array(
+        [
+            focus_of(data.z_nm, _fit_at(data.expected[k], x, y, roi_size)["amplitude"].to_numpy())
+            for k, x, y in zip(cal["stack"], cal["x"], cal["y"], strict=True)
+        ]
+    )
+    grid = np.arange(-span_nm, span_nm + step_nm / 2, step_nm)
+    rows = []
+    emitters = data.test_truth.drop_duplicates("emitter")
+    h, w = data.frames.shape[1:]
+    for e, x, y in zip(emitters["emitter"], emitters["x"], emitters["y"], strict=True):
+        images = np.full((grid.size, h, w), data.background)
+        _add(images, 1e5 * render_patches(data.microscope, data.fields, x, y, grid, roi_size),
+             x, y)  # fmt: skip
+        focus = focus_of(grid, _fit_at(images, x, y, roi_size)["amplitude"].to_numpy())
+        image = np.full((1, h, w), data.background)
+        _add(image, 1e5 * render_patches(data.microscope, data.fields, x, y,
+                                         np.array([focus]), roi_size), x, y)  # fmt: skip
+        at = _fit_at(image, x, y, roi_size).iloc[0]
+        rows.append((e, focus, at["x"], at["y"]))
+    return beads, pd.DataFrame(rows, columns=["emitter", "focus_nm", "focus_x", "focus_y"])
+
+
+def _plane(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    design = np.column_stack([np.ones(x.size), x, y])
+    return np.linalg.lstsq(design, z, rcond=None)[0]
+
+
+def localize_test(data: ValidationData, *, roi_size: int, max_px: float = 2.0) -> pd.DataFrame:
+    """Detect and fit the test frames with :func:`latentz.localization.localize`; keep
+    converged, isolated spots matched to an emitter within ``max_px`` (``emitter`` column)."""
+    from latentz.localization import localize
+
+    found = localize(data.frames, camera=data.camera, roi_size=roi_size)
+    found = found[found["converged"] & ~found["close_pair"] & ~found["edge"]]
+    emitters = data.test_truth.drop_duplicates("emitter")
+    dist, idx = cKDTree(emitters[["x", "y"]].to_numpy()).query(found[["x", "y"]].to_numpy())
+    near = dist <= max_px
+    return found[near].assign(emitter=emitters["emitter"].to_numpy()[idx[near]])
+
+
+def score(data: ValidationData, located: pd.DataFrame, truth: dict[str, Any]) -> pd.DataFrame:
+    """Errors of ``cal.apply`` output against the truth: one row per spot.
+
+    ``truth`` is :func:`study_truth`'s. Columns: ``emitter``, ``frame``, ``x``, ``y`` (px),
+    ``true_z_nm``, ``in_range``, ``err_x_nm``, ``err_y_nm``, ``err_z_nm`` and the reported
+    ``x_err_nm``, ``y_err_nm``, ``z_err_nm``.
+    """
+    key = ["emitter", "frame"]
+    spots = located.merge(data.test_truth, on=key, suffixes=("", "_true"))
+    focus = truth["test_focus"].set_index("emitter").loc[spots["emitter"].to_numpy()]
+    c0, cx, cy = truth["plane"]
+    tx, ty = spots["x_true"].to_numpy(), spots["y_true"].to_numpy()
+    surface = data.fields.focal_surface_nm(tx, ty)
+    true_z = spots["defocus_nm"].to_numpy() + surface - (c0 + cx * tx + cy * ty)
+    px = data.camera.pixel_size_nm
+    return pd.DataFrame(
+        {
+            "emitter": spots["emitter"],
+            "frame": spots["frame"],
+            "x": tx,
+            "y": ty,
+            "true_z_nm": true_z,
+            "in_range": spots["in_range"].to_numpy(bool),
+            "err_x_nm": spots["x_nm"].to_numpy() - focus["focus_x"].to_numpy() * px,
+            "err_y_nm": spots["y_nm"].to_numpy() - focus["focus_y"].to_numpy() * px,
+            "err_z_nm": spots["z_nm"].to_numpy() - true_z,
+            "x_err_nm": spots["x_err_nm"].to_numpy(),
+            "y_err_nm": spots["y_err_nm"].to_numpy(),
+            "z_err_nm": spots["z_err_nm"].to_numpy(),
+        }
+    )
+
+
+def study_truth(data: ValidationData, *, roi_size: int) -> dict[str, Any]:
+    """Best focus of every calibration bead and test emitter (:func:`best_focus`), and the
+    calibration's z = 0: the plane through the beads' piezo z of best focus plus their
+    substrate height (``plane``: c0, cx, cy of ``z = c0 + cx x + cy y``, x, y in px)."""
+    cal = data.calibration_truth
+    beads, test_focus = best_focus(data, roi_size=roi_size)
+    x, y = cal["x"].to_numpy(), cal["y"].to_numpy()
+    level = beads + cal["substrate_nm"].to_numpy()  # best focus on the focal surface's axis
+    return {"bead_focus_nm": beads, "test_focus": test_focus, "plane": _plane(x, y, level)}

@@ -1,0 +1,98 @@
+"""Cross-validation of the widefield prediction, field_model="auto", and the stored table."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from calib_synthetic import make_traces
+
+from latentz.calibration import Calibration, calibrate_traces
+from latentz.calibration.crossval import (
+    MIN_FIELD_PARTICLES,
+    choose_field_model,
+    crossval,
+    crossval_summary,
+)
+from latentz.calibration.errors import combine, field_sigma
+
+N_PARTICLES = 60
+OFFSET_SD_NM = 40.0
+
+
+@pytest.fixture(scope="module")
+def offset_calibration():
+    """Particles whose focus is offset by white noise (no spatial correlation, no plane): each
+    particle's z(s) is shifted by its own offset after tilt removal, so predicting it from the
+    nearest other particle errs by the difference of two independent offsets."""
+    rng = np.random.default_rng(4)
+    z_f = rng.normal(0.0, OFFSET_SD_NM, N_PARTICLES)
+    traces, truth = make_traces(N_PARTICLES, z_f=z_f, noise=0.02, seed=5)
+    cal = calibrate_traces(traces, shape="rho", field_model="nearest", cull=False, tilt=False)
+    return cal, truth
+
+
+def test_nearest_crossval_error_is_the_difference_of_two_offsets(offset_calibration):
+    cal, _ = offset_calibration
+    summary = crossval_summary(crossval(cal, ("nearest",)))
+    expected = np.sqrt(2.0) * OFFSET_SD_NM
+    # the sample RMS of ~60 independent differences: relative standard error ~ 1/sqrt(2 * 60)
+    assert summary.loc["nearest", "rmse_z_nm"] == pytest.approx(expected, rel=0.25)
+    assert summary.loc["nearest", "in_range"] > 0.95
+
+
+def test_field_sigma_follows_the_crossval_errors(offset_calibration):
+    cal, _ = offset_calibration
+    table = cal.crossval_of("nearest")
+    sigma = field_sigma(table, "nearest", "z", np.array([-500.0, 0.0, 500.0, np.nan]), 5.0)
+    used = table[table["in_range"]]
+    # the overall RMS error per pixel of held-out distance, at 5 px; bins agree within 50 %
+    rms = np.sqrt(np.mean(used["err_z_nm"] ** 2) / np.mean(used["distance_px"] ** 2)) * 5.0
+    assert np.all(np.abs(sigma[:3] / rms - 1) < 0.5) and np.isnan(sigma[3])
+
+
+def test_combine_adds_in_quadrature_and_ignores_missing_parts():
+    np.testing.assert_allclose(combine(np.array([3.0]), np.array([4.0]), np.nan), [5.0])
+
+
+def _summary(**rows):
+    cols = ["rmse_z_nm", "rmse_xy_nm", "in_range"]
+    return pd.DataFrame({k: dict(zip(cols, v, strict=True)) for k, v in rows.items()}).T
+
+
+@pytest.mark.parametrize(
+    ("rows", "chosen"),
+    [
+        ({"nearest": (50, 5, 1.0), "natural": (30, 4, 0.99), "zernike": (40, 4, 1.0)}, "natural"),
+        ({"nearest": (50, 5, 1.0), "natural": (30, 4, 0.6), "zernike": (40, 4, 1.0)}, "zernike"),
+        ({"nearest": (50, 5, 1.0), "natural": (30, 6, 1.0), "zernike": (60, 4, 1.0)}, "nearest"),
+    ],
+)
+def test_auto_picks_the_best_model_never_worse_than_nearest(rows, chosen):
+    assert choose_field_model(_summary(**rows)) == chosen
+
+
+def test_auto_with_too_few_particles_says_so_and_uses_nearest():
+    traces, _ = make_traces(MIN_FIELD_PARTICLES - 2, noise=0.02, seed=1)
+    cal = calibrate_traces(traces, shape="rho", cull=False)
+    assert cal.options["field_model"] == "auto"
+    with pytest.warns(UserWarning, match="using 'nearest'"):
+        assert cal.field_model == "nearest"
+
+
+@pytest.mark.slow
+def test_auto_calibration_round_trips_with_its_crossval(offset_calibration, tmp_path):
+    cal, truth = offset_calibration
+    auto = calibrate_traces(cal.traces, shape="rho", field_model="auto", cull=False, tilt=False)
+    spots = pd.DataFrame(
+        {
+            "x": truth["positions"][:20, 0] + 0.3,
+            "y": truth["positions"][:20, 1] - 0.2,
+            **{c: auto.traces[c][:20, 60] for c in ("amplitude", "wx", "wy", "rho")},
+        }
+    )
+    before = auto.apply(spots)
+    auto.save(tmp_path / "cal.h5")
+    loaded = Calibration.load(tmp_path / "cal.h5")
+    assert loaded.field_model == auto.field_model
+    pd.testing.assert_frame_equal(loaded.crossval_of(auto.field_model),
+                                  auto.crossval_of(auto.field_model))  # fmt: skip
+    pd.testing.assert_frame_equal(loaded.apply(spots), before)
