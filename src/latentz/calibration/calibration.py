@@ -300,8 +300,9 @@ class Calibration:
 
         z comes from the field model of z(x', y'; s) at the spot's shape value s, and the
         lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
-        ``field_model="nearest"``, from the nearest calibration particle's local models. Uncertainties combine the spots' own Cramér–Rao errors (when they carry them),
-        the nearest particle's local model errors and the field model's cross-validated error
+        ``field_model="nearest"``, from the nearest calibration particle's local models.
+        Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
+        nearest particle's local model errors and the field model's cross-validated error
         (:mod:`latentz.calibration.errors`).
 
         Parameters
