@@ -33,6 +33,17 @@ def check_pixel_size(pixel_nm: float, calibration_pixel_nm: float, *, rtol: floa
         )
 
 
+def check_roi_size(roi_size: int | None, calibration_roi_size: int) -> None:
+    """Warn if spots were fitted in a ROI (pixels) other than the calibration's: the fitted
+    widths, and so the shape value and z, depend on the ROI. None (unknown) passes."""
+    if roi_size is not None and int(roi_size) != int(calibration_roi_size):
+        _warn(
+            f"The spots were fitted in a {roi_size} px ROI but the calibration in "
+            f"{calibration_roi_size} px; z is biased. Use lz.localize(frames, calibration=cal), "
+            f"or roi_size={calibration_roi_size}."
+        )
+
+
 #: Plausible growth of a defocused spot's Gaussian width per unit of defocus: about
 #: tan(asin(NA / n)) / 2 far from focus, less near it; 0.02..3 spans air and oil objectives.
 DEFOCUS_RATE = (0.02, 3.0)

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz._shared.sanity import check_widths
+from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.local import LocalModels, row_mean
 from latentz.calibration.shape import shape_sigma, shape_value, uses_amplitude
@@ -98,6 +98,17 @@ class Calibration:
     def shape(self) -> str:
         """The shape parameter used for axial localization."""
         return self.options["shape"]
+
+    @property
+    def roi_size(self) -> int:
+        """Side of the ROI the calibration spots were fitted in, pixels: spots to localize with
+        this calibration must be fitted in the same ROI (their widths depend on it)."""
+        return int(self.options.get("roi_size") or 15)
+
+    @property
+    def method(self) -> str:
+        """The fit method of the calibration spots ("mle", "wlsq" or "lsq")."""
+        return self.options.get("method", "mle")
 
     @property
     def tilt_mrad(self) -> float:
@@ -282,6 +293,7 @@ class Calibration:
             calibrated range, z_nm and the corrected positions are NaN and in_range is False.
         """
         check_columns("spots", spots, SPOT_COLUMNS)
+        check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
         check_widths(spots[["wx", "wy"]].to_numpy(dtype=np.float64), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         shape = self.shape

@@ -178,6 +178,7 @@ def calibrate(
         field_model=field_model,
         n_terms=n_terms,
         roi_size=roi_size,
+        method=method,
         **options,
     )
 
@@ -195,6 +196,7 @@ def calibrate_traces(
     neighbours: int = 8,
     field_shape: tuple[int, int] | None = None,
     roi_size: int | None = None,
+    method: str = "mle",
     iterations: int = 0,
     sources: Sequence[str] | None = None,
     **options: Any,
@@ -258,6 +260,7 @@ def calibrate_traces(
         "neighbours": neighbours,
         "field_shape": _field_shape(traces, field_shape),
         "roi_size": roi_size,
+        "method": method,
         "iterations": check_int("iterations", iterations, minimum=0),
         "sources": [str(x) for x in sources] if sources is not None else [],
         **{k: getattr(local_options, k) for k in LocalOptions.__dataclass_fields__},
