@@ -14,6 +14,11 @@ def _warn(message: str) -> None:
     warnings.warn(message, LatentzWarning, stacklevel=3)
 
 
+def warn(message: str) -> None:
+    """Issue one :class:`LatentzWarning` line (for checks that live beside their data)."""
+    warnings.warn(message, LatentzWarning, stacklevel=3)
+
+
 def check_offset(offset_adu: float, frame_median_adu: float) -> None:
     """Warn if the camera offset (ADU) is above the image median (ADU)."""
     if offset_adu > frame_median_adu:

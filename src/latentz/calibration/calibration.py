@@ -111,6 +111,50 @@ class Calibration:
         return self.options.get("method", "mle")
 
     @property
+    def shape_choice(self) -> dict[str, Any] | None:
+        """Why the shape parameter was picked (``calibrate(shape=None)``): ``chosen``, a one-line
+        ``reason`` and each candidate's ``scores``; None when the user gave the shape."""
+        return self.options.get("shape_choice")
+
+    @property
+    def usable_planes(self) -> np.ndarray:
+        """(n, n_z) mask of each particle's planes where a 1000-photon emitter's Cramér–Rao σ_z
+        stays near its best (:func:`~latentz.calibration.precision.usable_planes`): beyond them
+        the PSF hardly changes with z (far defocus, ring images)."""
+        if "usable_planes" not in self._cache:
+            from latentz.calibration.precision import (
+                REFERENCE_PHOTONS,
+                crlb_sigma_z,
+                usable_planes,
+            )
+
+            sigma = crlb_sigma_z(
+                self.local,
+                self.traces,
+                self.shape,
+                REFERENCE_PHOTONS,
+                roi_size=self.roi_size,
+                readnoise=self.camera.readnoise,
+            )
+            self._cache["usable_planes"] = usable_planes(sigma)
+        return self._cache["usable_planes"]
+
+    @property
+    def usable_z_nm(self) -> np.ndarray:
+        """(n, 2) lowest and highest tilt-corrected z (nm) of each particle's usable planes
+        (NaN where none): spots localized outside it are not `good`."""
+        if "usable_z" not in self._cache:
+            z = np.where(self.usable_planes, self.local.z_nm, np.nan)
+            with np.errstate(invalid="ignore"):
+                import warnings
+
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    span = np.stack([np.nanmin(z, axis=1), np.nanmax(z, axis=1)], axis=1)
+            self._cache["usable_z"] = span
+        return self._cache["usable_z"]
+
+    @property
     def tilt_mrad(self) -> float:
         """Nutation of the substrate normal from the optical axis, mrad."""
         return self.plane.nutation_mrad
