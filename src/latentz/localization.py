@@ -24,11 +24,14 @@ from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
 from latentz.io import as_frames
+from latentz.quality import assess, check_calibration_fits
 
 __all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
-#: Columns of the table returned by `localize`, in order.
-LOCALIZE_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
+#: Columns of one chunk's detections and fits, in order.
+_CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
+#: Columns of the table returned by `localize` without a calibration, in order.
+LOCALIZE_COLUMNS = (*_CHUNK_COLUMNS, "duplicate", "unresolved", "good")
 _LOCAL_SCHEDULERS = ("threads", "processes", "synchronous")
 _CHUNK_BYTES = 64 * 2**20
 
@@ -53,7 +56,7 @@ def _localize_chunk(
     photons = camera.to_photons(block) if camera is not None else block.astype(np.float64)
     found = detect_arrays(photons, roi_size=roi_size, threshold=threshold, sigma=sigma)
     if len(found.frame) == 0:
-        return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in LOCALIZE_COLUMNS})
+        return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
     fit = fit_arrays(found.rois, method=method, readnoise=readnoise)
     row0, col0, edge = found.row0, found.col0, found.edge
@@ -88,7 +91,7 @@ def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndar
 
 
 def _dtype(column: str) -> str:
-    if column in ("converged", "edge", "close_pair"):
+    if column in ("converged", "edge", "close_pair", "duplicate", "unresolved", "good"):
         return "bool"
     return "int64" if column in ("frame", "iterations") else "float64"
 
@@ -172,8 +175,9 @@ def localize(
         score in noise units), ``edge`` (the ROI was shifted inward at the frame's edge) and
         ``close_pair`` (another detection lies inside this ROI); with a calibration, the
         columns of :meth:`~latentz.calibration.Calibration.apply` too. Then the quality verdict
-        of :func:`latentz.quality.assess`: ``good`` and the flags that explain it. Rows are
-        ordered by frame; ``attrs["roi_size"]`` records the ROI.
+        of :func:`latentz.quality.assess`: ``good`` and the flags that explain it (nothing is
+        dropped); with a calibration that most spots contradict, one warning names the likely
+        cause. Rows are ordered by frame; ``attrs["roi_size"]`` records the ROI.
     """
     movie = as_frames(frames)
     if calibration is not None:
@@ -226,4 +230,7 @@ def localize(
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(table)
+    table = assess(table, calibration, roi_size=roi_size)
+    if calibration is not None:
+        table = check_calibration_fits(table)
     return table

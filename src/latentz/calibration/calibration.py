@@ -154,6 +154,31 @@ class Calibration:
             self._cache["usable_z"] = span
         return self._cache["usable_z"]
 
+    def curves_at(self, particle: Any, z_nm: Any) -> dict[str, np.ndarray]:
+        """The calibration curves wx, wy (px) and ρ of particles ``particle`` at tilt-corrected
+        ``z_nm`` (arrays of one shape), from their traces smoothed by a running median of 5
+        planes; ``<name>_scatter``: each particle's RMS scatter of the trace about that curve."""
+        if "curves" not in self._cache:
+            from scipy.ndimage import median_filter
+
+            curves = {}
+            for name in ("wx", "wy", "rho"):
+                raw = self.traces[name]
+                filled = pd.DataFrame(raw.T).ffill().bfill().to_numpy().T
+                smooth = median_filter(filled, size=(1, 5), mode="nearest")
+                curves[name] = smooth
+                with np.errstate(invalid="ignore"):
+                    curves[f"{name}_scatter"] = np.sqrt(np.nanmean((raw - smooth) ** 2, axis=1))
+            self._cache["curves"] = curves
+        curves = self._cache["curves"]
+        p = np.asarray(particle, dtype=int)
+        z = np.asarray(z_nm, dtype=np.float64)
+        out = {}
+        for name in ("wx", "wy", "rho"):
+            out[name] = _interp_rows(self.local.z_nm, curves[name], p, z)
+            out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
+        return out
+
     @property
     def tilt_mrad(self) -> float:
         """Nutation of the substrate normal from the optical axis, mrad."""
