@@ -93,6 +93,7 @@ def localize_movies(
     from latentz.cli_options import camera_from_options
     from latentz.io import read_stack
     from latentz.localization import check_camera_offset, localize
+    from latentz.quality import assess, check_calibration_fits
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
@@ -104,7 +105,7 @@ def localize_movies(
     movie_camera = camera_from_options(**overrides, base=cal.camera)
     check_pixel_size(movie_camera.pixel_size_nm, cal.camera.pixel_size_nm)
     if roi_size is None:  # the fitted widths, hence the shape value, depend on the ROI
-        roi_size = cal.options.get("roi_size") or 15
+        roi_size = cal.roi_size
     stacks = [read_stack(m) for m in movies]
     if len({s.shape[1:] for s in stacks}) != 1:
         raise ValueError("Every movie must have the same frame size.")
@@ -130,10 +131,11 @@ def localize_movies(
                 camera=movie_camera,
                 roi_size=roi_size,
                 threshold=threshold,
+                method=cal.method,
                 scheduler=scheduler,
             )
             spots["frame"] = spots["frame"] + start
-            located = cal.apply(spots)
+            located = assess(cal.apply(spots), cal, roi_size=roi_size)
         located.insert(
             1,
             "movie",
@@ -152,6 +154,7 @@ def localize_movies(
         resume=resume,
         metadata=meta,
         progress=progress,
+        finish=check_calibration_fits,
     )
     check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
     if fmt == "picasso":
@@ -190,19 +193,26 @@ def track_tables(
     n_sim: int = 10000,
     seed: int = 0,
     static_frames: list[int] | None = None,
+    good_only: bool = True,
 ) -> dict[str, pd.DataFrame]:
-    """Link the in-range localizations, fit rigid motion, its Monte Carlo uncertainty and
-    Table 1 (with drift from ``static_frames``, frames without intentional motion)."""
+    """Link the in-range localizations (only the ``good`` ones unless ``good_only`` is False,
+    see :mod:`latentz.quality`), fit rigid motion, its Monte Carlo uncertainty and Table 1
+    (with drift from ``static_frames``, frames without intentional motion). The motion table's
+    ``attrs["quality"]`` says how many in-range rows were dropped, and why."""
     from latentz._shared.validate import check_columns
     from latentz.motion import drift, link, motion_uncertainty, rigid_motion, table1
+    from latentz.quality import good_rows
 
     check_columns("locs", locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
-    kept = locs[locs["in_range"].astype(bool)]
+    kept, used = locs[locs["in_range"].astype(bool)], ""
+    if good_only:
+        kept, used = good_rows(kept)
     if kept["frame"].nunique() < 2:
         raise ValueError("Tracking needs in-range localizations in at least two frames.")
     moving = kept if not static_frames else kept[~kept["frame"].isin(static_frames)]
     tracks = link(moving, search_range_nm=search_range_nm, memory=memory, predict=True)
     motion = rigid_motion(tracks)
+    motion.attrs["quality"] = used
     uncertainty = motion_uncertainty(tracks, motion, n_sim=n_sim, seed=seed)
     drift_nm = None
     if static_frames:

@@ -10,6 +10,7 @@ Only ``field_model="nearest"`` is available until the widefield stage is integra
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -48,8 +49,9 @@ def _check_z(z_nm: Any, options: LocalOptions) -> np.ndarray:
     need = max(options.lateral_order, options.shape_order, options.amplitude_order) + 2
     if z.size < need:
         raise ValueError(
-            f"The calibration needs at least {need} planes for polynomials of order "
-            f"{need - 2} (lateral_order/shape_order), got {z.size} values in `z_nm`."
+            f"The calibration needs a through-focus stack of at least {need} planes (one image "
+            f"per z) to model each particle, got {z.size}: record more planes, or lower "
+            f"lateral_order/shape_order (now {need - 2})."
         )
     steps = np.diff(z)
     if not (np.all(steps > 0) or np.all(steps < 0)):
@@ -164,6 +166,7 @@ def calibrate(
                 f"Stack {s} has {stack.shape[0]} planes but `z_nm` has {z.size} values."
             )
         loaded.append(stack)
+    _check_offset(camera, loaded)
     order = np.argsort(z)
     loaded = [stack[order] for stack in loaded]
     if "field_shape" not in options:
@@ -183,7 +186,17 @@ def calibrate(
                 f"must lie a pixel inside the edge): use roi_size <= {limit}, or None."
             )
 
-    def run(roi: int) -> Calibration:
+    def run(roi: int) -> tuple[Calibration, list]:
+        """One calibration with ``roi``, and the warnings it gave (to say once, not per pass)."""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                return _calibrate_once(roi), caught
+            except BaseException:
+                _say(caught)
+                raise
+
+    def _calibrate_once(roi: int) -> Calibration:
         traces = extract_traces(
             loaded,
             z[order],
@@ -207,8 +220,16 @@ def calibrate(
         )
 
     if roi_size is not None:
-        return run(roi_size)
+        cal, caught = run(roi_size)
+        _say(caught)
+        return cal
     return _calibrate_roi(run, min(_FIRST_ROI, limit), limit)
+
+
+def _say(caught: list) -> None:
+    """Issue again each distinct warning recorded in ``caught``."""
+    for message in {str(w.message): w for w in caught}.values():
+        warnings.warn(message.message, message.category, stacklevel=4)
 
 
 def _calibrate_roi(run, roi: int, limit: int) -> Calibration:
@@ -216,7 +237,7 @@ def _calibrate_roi(run, roi: int, limit: int) -> Calibration:
     ``roi`` pixels (at most :data:`_ROI_PASSES` calibrations: the usable planes, and so the
     widest spot, move a little with the ROI), never above ``limit``; warn when the images are
     too small for it."""
-    cal = run(roi)
+    cal, caught = run(roi)
     for _ in range(_ROI_PASSES - 1):
         width = widest_spot_px(cal)
         if not np.isfinite(width):
@@ -225,7 +246,8 @@ def _calibrate_roi(run, roi: int, limit: int) -> Calibration:
         if wanted == roi:
             break
         roi = wanted
-        cal = run(roi)
+        cal, caught = run(roi)
+    _say(caught)
     width = widest_spot_px(cal)
     if np.isfinite(width) and roi_for_width(width) > limit:
         warn(
@@ -350,6 +372,19 @@ def calibrate_traces(
         scores=scores,
         options=options_used,
     )
+
+
+def _check_offset(camera: Camera, stacks: list[np.ndarray]) -> None:
+    """Refuse a camera offset (ADU) above the median of the calibration images: most pixels
+    would hold negative photons and no particle would be found."""
+    sample = np.concatenate([np.ravel(st[:: max(1, len(st) // 8), ::2, ::2]) for st in stacks])
+    median = float(np.median(sample))
+    if camera.offset > median:
+        raise ValueError(
+            f"The camera offset {camera.offset:g} ADU is above the median {median:g} ADU of the "
+            "calibration images: give the camera's real offset (below that), or leave it out "
+            "to estimate it."
+        )
 
 
 def _check_kept(culled: np.ndarray, reason: np.ndarray, roi_size: int | None) -> None:
