@@ -42,11 +42,13 @@ def read_stack(path: str | os.PathLike) -> da.Array:
         raise ValueError(f"{source.name} is empty (0 bytes): give a TIFF stack of images.")
     try:
         with tifffile.TiffFile(source) as tif:
-            if not tif.series or 0 in tif.series[0].shape:
+            if not tif.series:
+                raise ValueError("no image series found")
+            if 0 in tif.series[0].shape:
                 raise _Empty(f"{source.name} holds no images: give a TIFF stack of images.")
             series = tif.series[0]
             shape, dtype = series.shape, series.dtype
-            if "S" in series.axes or str(tif.pages[0].photometric.name) in ("RGB", "YCBCR"):
+            if series.axes.endswith("S"):  # interleaved colour samples: (..., rows, cols, 3)
                 raise _Empty(
                     f"{source.name} holds colour (RGB) images of shape {tuple(shape)}: latentz "
                     "needs single-channel frames; save the camera's raw grayscale frames."
