@@ -316,6 +316,7 @@ def calibrate_traces(
         "never_in_focus": ~local.in_focus,
         "crowded": traces.crowded,
     }
+    _check_kept(np.any(np.stack(list(hard.values())), axis=0), _reasons(hard), roi_size)
     choice = None
     if shape is None:
         usable = ~np.any(np.stack(list(hard.values())), axis=0)
@@ -340,10 +341,7 @@ def calibrate_traces(
         culled, reason, scores = cull_particles(features, hard, threshold=cull_threshold)
         plane = _tilt_plane(substrate_nm, local.z_f, ~culled, tilt)
     else:
-        reason = np.array(
-            [",".join(k for k, m in hard.items() if m[i]) for i in range(len(traces))],
-            dtype=object,
-        )
+        reason = _reasons(hard)
     _check_kept(culled, reason, roi_size)
     field_model = _field_model_for(field_model, int(np.count_nonzero(~culled)))
     options_used = {
@@ -385,6 +383,12 @@ def _check_offset(camera: Camera, stacks: list[np.ndarray]) -> None:
             "calibration images: give the camera's real offset (below that), or leave it out "
             "to estimate it."
         )
+
+
+def _reasons(flags: dict[str, np.ndarray]) -> np.ndarray:
+    """Comma-separated names of the flags each particle carries."""
+    n = len(next(iter(flags.values())))
+    return np.array([",".join(k for k, m in flags.items() if m[i]) for i in range(n)], object)
 
 
 def _check_kept(culled: np.ndarray, reason: np.ndarray, roi_size: int | None) -> None:
