@@ -140,6 +140,16 @@ def _camera_options(func):
     return func
 
 
+def _device_option(func):
+    return click.option(
+        "--device",
+        default="auto",
+        show_default=True,
+        type=click.Choice(["auto", "cpu", "cuda"]),
+        help="Fit (and detect) on the CPU or an NVIDIA GPU (needs `pip install 'latentz[gpu]'`).",
+    )(func)
+
+
 def _progress(quiet: bool) -> bool:
     return not quiet and sys.stderr.isatty()
 
@@ -181,6 +191,7 @@ def _progress(quiet: bool) -> bool:
     type=click.Path(dir_okay=False, path_type=Path),
     help="Calibration file to write (HDF5).",
 )
+@_device_option
 @_quiet_option
 def calibrate(
     stacks,
@@ -198,6 +209,7 @@ def calibrate(
     field_model,
     n_terms,
     out,
+    device,
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
@@ -210,10 +222,12 @@ def calibrate(
         stage_offsets_px,
         z_positions,
     )
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.pipeline import provenance
 
     check_output_file(out, (".h5", ".hdf5"))
+    device = resolve_device(device)
 
     given = {"offset": offset, "gain": gain, "readnoise": readnoise, "pixel_size_nm": pixel_size_nm}
     flatfield = None
@@ -247,6 +261,7 @@ def calibrate(
         progress=_progress(quiet),
         stage_offsets_px=offsets,
         sources=[str(p) for p in stacks],
+        device=device,
     )
     inputs = {"stacks": list(stacks)}
     for role, path in (
@@ -295,6 +310,7 @@ def calibrate(
 @click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")
 @click.option("--scheduler", default=None, help="dask.distributed scheduler address.")
 @_camera_options
+@_device_option
 @_quiet_option
 def localize(
     movies,
@@ -311,6 +327,7 @@ def localize(
     gain,
     readnoise,
     pixel_size_nm,
+    device,
     quiet,
 ) -> None:
     """Localize every emitter in 3D with a calibration.
@@ -342,6 +359,7 @@ def localize(
         scheduler=scheduler,
         progress=_progress(quiet),
         camera=camera,
+        device=device,
     )
     from latentz.quality import summary
 

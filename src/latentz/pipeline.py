@@ -72,6 +72,7 @@ def localize_movies(
     scheduler: Any = None,
     progress: bool = False,
     camera: dict[str, Any] | None = None,
+    device: str = "auto",
 ) -> pd.DataFrame:
     """Localize movies in 3D with a calibration file and write one table with provenance.
 
@@ -83,7 +84,8 @@ def localize_movies(
     ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm``, as
     :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
     gain. Positions are converted to nm with the calibration's pixel size, which its models were
-    made in; a different ``pixel_size_nm`` is warned about.
+    made in; a different ``pixel_size_nm`` is warned about. ``device`` ("auto", "cpu", "cuda")
+    is where detection and fits run (:func:`latentz.engine.resolve_device`).
     """
     import dask.array as da
 
@@ -91,12 +93,14 @@ def localize_movies(
     from latentz.calibration import Calibration
     from latentz.chunked import run_chunked
     from latentz.cli_options import camera_from_options
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.localization import check_camera_offset, localize
     from latentz.quality import assess, check_calibration_fits
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
+    device = resolve_device(device)
     target = Path(out)
     if fmt is None and target.suffix.lower() == ".hdf5":
         fmt = "picasso"
@@ -133,6 +137,7 @@ def localize_movies(
                 threshold=threshold,
                 method=cal.method,
                 scheduler=scheduler,
+                device=device,
             )
             spots["frame"] = spots["frame"] + start
             located = assess(cal.apply(spots), cal, roi_size=roi_size)

@@ -29,6 +29,7 @@ from latentz.calibration.shape_choice import choose, score_shapes
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces, extract_traces
 from latentz.camera import Camera
+from latentz.engine import resolve_device
 
 __all__ = ["calibrate", "calibrate_traces"]
 
@@ -87,6 +88,7 @@ def calibrate(
     stage_offsets_px: Any = None,
     threshold: float | None = None,
     method: str = "mle",
+    device: str = "auto",
     **options: Any,
 ) -> Calibration:
     """Calibrate the microscope from through-focus stacks of fluorescent particles.
@@ -124,6 +126,8 @@ def calibrate(
         Detection threshold in photons above the projection's median.
     method : {"mle", "wlsq", "lsq"}
         Gaussian fitting method.
+    device : {"auto", "cpu", "cuda"}
+        Where the fits run: CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``).
     **options
         ``tilt`` (bool, default True): fit and remove the substrate tilt;
         ``cull`` (bool, default True) and ``cull_threshold`` (robust z-score, default 6),
@@ -152,6 +156,7 @@ def calibrate(
     if shape is not None:
         check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_MODELS)
+    device = resolve_device(device)
     if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
         stacks = [stacks]
     loaded = []
@@ -207,6 +212,7 @@ def calibrate(
             threshold=threshold,
             method=method,
             progress=progress,
+            device=device,
         )
         return calibrate_traces(
             traces,
