@@ -26,9 +26,9 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _warning_line(message, category, *args, **kwargs) -> None:
-    """Show a latentz warning as one ``latentz: warning: ...`` line on stderr."""
-    click.echo(f"latentz: warning: {_first_line(message)}", err=True)
+def _warning_line(message, category, *args, **kwargs) -> str:
+    """A warning as one ``latentz: warning: ...`` line (Python's warnings.formatwarning)."""
+    return f"latentz: warning: {_first_line(message)}\n"
 
 
 class _Group(click.Group):
@@ -36,9 +36,11 @@ class _Group(click.Group):
 
     def invoke(self, ctx: click.Context):
         try:
-            with warnings.catch_warnings():
-                warnings.showwarning = _warning_line
+            formatwarning, warnings.formatwarning = warnings.formatwarning, _warning_line
+            try:
                 return super().invoke(ctx)
+            finally:
+                warnings.formatwarning = formatwarning
         except (click.exceptions.Exit, click.ClickException):
             raise
         except (KeyboardInterrupt, click.exceptions.Abort):

@@ -20,6 +20,12 @@ def run(*args):
     return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
 
 
+def run_process(*args):
+    """The CLI as users run it (its warnings reach stderr, not pytest's recorder)."""
+    command = [sys.executable, "-m", "latentz.cli", *(str(a) for a in args)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300)
+
+
 def one_error_line(result, *matches):
     assert result.exit_code == 2, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
@@ -143,14 +149,14 @@ def test_z_step_ten_times_too_small_is_one_warning_line(tmp_path):
     stack, _ = fit3d_bead()
     path = tmp_path / "bead.tif"
     tifffile.imwrite(path, stack[::2].astype(np.uint16))
-    result = run(
+    result = run_process(
         "calibrate", path, "--z-start", 0, "--z-step", 20 * factor, "--offset", 400,
         "--gain", 0.1, "--pixel-size-nm", 100, "--quiet", "--out", tmp_path / "c.h5",
     )  # fmt: skip
-    lines = result.output.splitlines()
+    lines = result.stderr.splitlines()
     warned = {line for line in lines if line.startswith("latentz: warning: z step 2 nm")}
     assert len(warned) == 1 and "that is a z step of" in warned.pop()
-    assert "Traceback" not in result.output
+    assert "Traceback" not in result.stderr
 
 
 @pytest.mark.realdata
@@ -158,12 +164,12 @@ def test_one_bead_calibrates_with_defaults_and_one_line_on_nearest(tmp_path):
     stack, _ = fit3d_bead()
     path = tmp_path / "bead.tif"
     tifffile.imwrite(path, stack[::2].astype(np.uint16))
-    result = run(
+    result = run_process(
         "calibrate", path, "--z-start", -1000, "--z-step", 20, "--offset", 400, "--gain", 0.1,
         "--pixel-size-nm", 100, "--quiet", "--out", tmp_path / "c.h5",
     )  # fmt: skip
-    assert result.exit_code == 0, result.output
-    nearest = [line for line in result.output.splitlines() if "field_model='nearest'" in line]
+    assert result.returncode == 0, result.stderr
+    nearest = [line for line in result.stderr.splitlines() if "field_model='nearest'" in line]
     assert len(set(nearest)) == 1 and nearest[0].startswith("latentz: warning:")
-    assert "camera: offset 400 ADU (given)" in result.output
-    assert "shape='auto'" in result.output
+    assert "camera: offset 400 ADU (given)" in result.stdout
+    assert "shape='auto'" in result.stdout

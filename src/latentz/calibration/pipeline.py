@@ -193,13 +193,17 @@ def calibrate(
 
     def run(roi: int) -> tuple[Calibration, list]:
         """One calibration with ``roi``, and the warnings it gave (to say once, not per pass)."""
+        failure = None
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                return _calibrate_once(roi), caught
-            except BaseException:
-                _say(caught)
-                raise
+                cal = _calibrate_once(roi)
+            except Exception as exc:  # said after its warnings, outside the recording
+                failure = exc
+        if failure is not None:
+            _say(caught)
+            raise failure
+        return cal, caught
 
     def _calibrate_once(roi: int) -> Calibration:
         traces = extract_traces(
