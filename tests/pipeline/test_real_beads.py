@@ -63,3 +63,31 @@ def test_fit3d_crop_shrinks_the_roi_with_one_line():
         cal = lz.calibrate(stack[1::2, CROP[0], CROP[1]], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
     assert cal.roi_size == 13
     assert sum("ROI" in str(w.message) for w in record) == 1
+
+
+def test_shape_choice_is_robust_to_emitters_dimmer_than_the_beads():
+    """auto_A has the better Cramér–Rao bound on the beads, but divides by A / A_ref: beads 1-5
+    calibrate, bead 0's images at half their amplitude play an emitter of unknown brightness."""
+    from latentz.calibration.pipeline import calibrate_traces
+    from latentz.calibration.traces import traces_table
+
+    stack, z = smlm_beads()
+    camera = lz.Camera(**SMLM_CAMERA)
+    cal = lz.calibrate(stack, z, camera=camera)
+    scores = cal.shape_choice["scores"]
+    assert scores["auto_A"]["crlb_nm"] < scores["auto"]["crlb_nm"]  # better for bright beads
+    assert cal.shape == "auto"  # ... but not for emitters of unknown brightness
+    others = cal.traces.subset(np.arange(1, 6))
+    dim = traces_table(cal.traces.subset([0])).assign(particle=0)
+    dim["amplitude"] *= 0.5
+    rms = {}
+    for shape in ("auto", "auto_A"):
+        model = calibrate_traces(others, camera=camera, shape=shape, roi_size=cal.roi_size)
+        out = model.apply(dim)
+        true_z = dim["z_nm"] - model.plane(*(cal.positions[0] * 100))
+        near = (np.abs(true_z) <= 300).to_numpy()
+        error = (out["z_nm"] - true_z).to_numpy()[near]
+        rms[shape] = np.sqrt(np.nanmean(error**2)) if np.isfinite(error).any() else np.inf
+        rms[shape + "_in_range"] = np.isfinite(error).mean()
+    assert rms["auto"] < 30 and rms["auto_in_range"] > 0.95
+    assert rms["auto_A"] > 3 * rms["auto"] or rms["auto_A_in_range"] < 0.5, rms
