@@ -178,15 +178,15 @@ def check_calibration_fits(table: pd.DataFrame) -> pd.DataFrame:
         return table
     ratio = float(np.nanmedian(table["width_ratio"].to_numpy(float)[checked]))
     across = float(np.nanmedian(table["axis_mismatch"].to_numpy(float)[checked]))
-    if abs(np.log(ratio)) > np.log(1.15):
-        cause = (
-            f"their widths are {ratio:.2g}x the calibration's: another pixel size, wavelength "
-            "or objective (another microscope or camera)"
-        )
-    elif across > 0.1:
+    if across > 0.1:
         cause = (
             "their astigmatism lies along other axes than the calibration's: another "
             "microscope, or a rotated camera"
+        )
+    elif abs(np.log(ratio)) > np.log(1.1):
+        cause = (
+            f"their widths are {ratio:.2g}x the calibration's: another pixel size, wavelength "
+            "or objective (another microscope or camera)"
         )
     else:
         cause = "their shapes differ from the calibration's: another microscope or camera"
