@@ -120,6 +120,7 @@ class _nothing:
         return False
 
 
+@pytest.mark.slow
 def test_ctrl_c_says_how_to_resume(tmp_path, small_microscope, small_calibration):
     cal = tmp_path / "cal.h5"
     small_calibration.save(cal)

@@ -78,6 +78,7 @@ def smlm_calibration():
     return lz.calibrate(stack, z, camera=lz.Camera(**SMLM_CAMERA))
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("angle", [0, 45])
 def test_another_microscopes_calibration_ends_with_one_warning(smlm_calibration, angle):

@@ -46,6 +46,7 @@ def test_fit3d_bead_odd_planes_calibrate_even_planes_localize(crop):
     assert 0.5 <= coverage <= 0.85, coverage
 
 
+@pytest.mark.slow
 def test_smlm_beads_calibrate_with_defaults():
     stack, z = smlm_beads()
     cal = lz.calibrate(stack, z, camera=lz.Camera(**SMLM_CAMERA))
@@ -65,6 +66,7 @@ def test_fit3d_crop_shrinks_the_roi_with_one_line():
     assert sum("ROI" in str(w.message) for w in record) == 1
 
 
+@pytest.mark.slow
 def test_shape_choice_is_robust_to_emitters_dimmer_than_the_beads():
     """auto_A has the better Cramér–Rao bound on the beads, but divides by A / A_ref: beads 1-5
     calibrate, bead 0's images at half their amplitude play an emitter of unknown brightness."""
