@@ -58,6 +58,7 @@ def run_chunked(
     resume: bool = False,
     metadata: dict[str, Any] | None = None,
     progress: bool = False,
+    finish: Callable[[pd.DataFrame], pd.DataFrame] | None = None,
 ) -> pd.DataFrame:
     """Run ``process(start, stop)`` over frame chunks and write the concatenated table to ``out``.
 
@@ -75,6 +76,8 @@ def run_chunked(
         Frames per chunk; bounds memory.
     resume : bool
         Reuse the finished chunks of an interrupted run with the same manifest.
+    finish : callable, optional
+        Applied to the whole table before it is written (checks that need every chunk).
     """
     n_frames = check_int("n_frames", n_frames, minimum=1)
     chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)
@@ -87,21 +90,29 @@ def run_chunked(
 
         bar = tqdm(total=len(starts), unit="chunk", desc="localize")
     parts = []
-    for start in starts:
-        stop = min(start + chunk_frames, n_frames)
-        piece = work / f"chunk-{start:09d}-{stop:09d}.parquet"
-        if piece.exists():
-            table, _ = read_table(piece)
-        else:
-            table = process(start, stop)
-            write_table(table, piece)
-        parts.append(table)
+    try:
+        for start in starts:
+            stop = min(start + chunk_frames, n_frames)
+            piece = work / f"chunk-{start:09d}-{stop:09d}.parquet"
+            if piece.exists():
+                table, _ = read_table(piece)
+            else:
+                table = process(start, stop)
+                write_table(table, piece)
+            parts.append(table)
+            if bar is not None:
+                bar.update()
+    except Exception:
+        if not any(work.glob("chunk-*.parquet")):  # nothing to resume from: leave no trace
+            shutil.rmtree(work, ignore_errors=True)
+        raise
+    finally:
         if bar is not None:
-            bar.update()
-    if bar is not None:
-        bar.close()
+            bar.close()
     non_empty = [p for p in parts if len(p)]
     result = pd.concat(non_empty, ignore_index=True) if non_empty else parts[0]
+    if finish is not None:
+        result = finish(result)
     write_table(result, out, metadata=metadata)
     shutil.rmtree(work)
     return result

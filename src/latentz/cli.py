@@ -8,14 +8,17 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import click
 
 from latentz import __version__
+from latentz.camera import Camera
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERNAL = 1
+EXIT_INTERRUPTED = 130
 
 
 def _first_line(exc: BaseException) -> str:
@@ -23,14 +26,35 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def _warning_line(message, category, *args, **kwargs) -> str:
+    """A warning as one ``latentz: warning: ...`` line (Python's warnings.formatwarning)."""
+    return f"latentz: warning: {_first_line(message)}\n"
+
+
 class _Group(click.Group):
     """A click group that turns expected errors into one line on stderr."""
 
     def invoke(self, ctx: click.Context):
         try:
-            return super().invoke(ctx)
-        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            formatwarning, warnings.formatwarning = warnings.formatwarning, _warning_line
+            try:
+                return super().invoke(ctx)
+            finally:
+                warnings.formatwarning = formatwarning
+        except (click.exceptions.Exit, click.ClickException):
             raise
+        except (KeyboardInterrupt, click.exceptions.Abort):
+            resumable = ctx.invoked_subcommand == "localize"
+            click.echo(
+                "latentz: interrupted"
+                + (
+                    "; the finished chunks are kept: run the same command with --resume to carry on"
+                    if resumable
+                    else "; nothing was written"
+                ),
+                err=True,
+            )
+            sys.exit(EXIT_INTERRUPTED)
         except (ValueError, TypeError, FileNotFoundError, OSError, KeyError) as exc:
             click.echo(f"latentz: error: {_first_line(exc)}", err=True)
             sys.exit(EXIT_BAD_INPUT)
@@ -65,6 +89,9 @@ def main() -> None:
 @click.option("--plot", is_flag=True, help="Also write the PSF gallery PNG.")
 def simulate(kind: str, out_dir: Path, seed: int, quick: bool, plot: bool) -> None:
     """Simulate a dataset with ground truth: calibration stacks, a gear movie or apertures."""
+    from latentz._shared.preflight import check_output_folder
+
+    check_output_folder(out_dir)
     from latentz.simulate import write_dataset
 
     written = write_dataset(kind, out_dir, seed=seed, quick=quick, plot=plot)
@@ -84,10 +111,31 @@ def _camera_options(func):
             type=click.Path(dir_okay=False),
             help="Camera JSON: offset, gain, readnoise, pixel_size_nm[, flatfield].",
         ),
-        click.option("--offset", type=float, help="Camera offset, ADU."),
-        click.option("--gain", type=float, help="Camera gain, photoelectrons per ADU."),
-        click.option("--readnoise", type=float, help="Read noise, photoelectrons."),
-        click.option("--pixel-size-nm", type=float, help="Pixel size in the sample, nm."),
+        click.option(
+            "--offset",
+            type=float,
+            help="Camera offset, ADU. [calibrate default: the image minimum; localize: the "
+            "calibration's]",
+        ),
+        click.option(
+            "--gain",
+            type=float,
+            help="Camera gain, photoelectrons per ADU. [calibrate default: from the stack's "
+            "photon-transfer curve; localize: the calibration's]",
+        ),
+        click.option(
+            "--readnoise",
+            type=float,
+            help=f"Read noise, photoelectrons. [default: {Camera().readnoise:g}; localize: the "
+            "calibration's]",
+        ),
+        click.option(
+            "--pixel-size-nm",
+            type=float,
+            help="Pixel size in the sample, nm. [calibrate default: the file's metadata (OME, "
+            f"ImageJ, MicroManager), else {Camera().pixel_size_nm:g}; localize: the "
+            "calibration's]",
+        ),
     ]
     for option in reversed(options):
         func = option(func)
@@ -121,9 +169,16 @@ def _progress(quiet: bool) -> bool:
 @_camera_options
 @click.option(
     "--shape",
-    default="rho_A",
-    show_default=True,
+    default=None,
     type=click.Choice(["rho", "rho_w", "rho_A", "auto", "auto_A"]),
+    help="Shape parameter for z. [default: the one with the best expected sigma_z for "
+    "single molecules; the calibration records why]",
+)
+@click.option(
+    "--roi-size",
+    type=int,
+    default=None,
+    help="ROI side, pixels (odd). [default: the smallest that holds the widest kept spot]",
 )
 @click.option(
     "--field-model",
@@ -152,6 +207,7 @@ def calibrate(
     readnoise,
     pixel_size_nm,
     shape,
+    roi_size,
     field_model,
     n_terms,
     out,
@@ -159,27 +215,49 @@ def calibrate(
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
+    from latentz._shared.preflight import check_output_file
     from latentz.calibration import calibrate as run_calibration
-    from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
+    from latentz.camera_source import camera_for_stacks
+    from latentz.cli_options import (
+        camera_from_options,
+        read_camera_file,
+        stage_offsets_px,
+        z_positions,
+    )
     from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.pipeline import provenance
 
+    check_output_file(out, (".h5", ".hdf5"))
     device = resolve_device(device)
 
-    camera = camera_from_options(
-        camera_file, offset=offset, gain=gain, readnoise=readnoise, pixel_size_nm=pixel_size_nm
-    )
+    given = {"offset": offset, "gain": gain, "readnoise": readnoise, "pixel_size_nm": pixel_size_nm}
+    flatfield = None
+    if camera_file is not None:
+        from_file, flatfield = read_camera_file(camera_file)
+        given = {**from_file, **{k: v for k, v in given.items() if v is not None}}
+    for name, value in given.items():  # bad values fail here, before any reading
+        if value is not None:
+            camera_from_options(None, **{name: value})
     loaded = [read_stack(path) for path in stacks]
+    for path, stack in zip(stacks, loaded, strict=True):
+        if stack.shape[0] == 1:
+            raise ValueError(
+                f"{Path(path).name} holds a single image, not a through-focus stack: "
+                "calibration needs one image per z plane."
+            )
     if len({s.shape[0] for s in loaded}) != 1:
         raise ValueError("Every calibration stack must have the same number of planes.")
     z = z_positions(loaded[0].shape[0], z_start_nm=z_start_nm, z_step_nm=z_step_nm, z_file=z_file)
     offsets = None if stage_offsets is None else stage_offsets_px(stage_offsets, len(loaded))
+    arrays = [s.compute() for s in loaded]
+    camera, said = camera_for_stacks(arrays, stacks[0], given, flatfield=flatfield)
     cal = run_calibration(
-        [s.compute() for s in loaded],
+        arrays,
         z,
         camera=camera,
         shape=shape,
+        roi_size=roi_size,
         field_model=field_model,
         n_terms=n_terms,
         progress=_progress(quiet),
@@ -197,8 +275,11 @@ def calibrate(
             inputs[role] = path
     cal.save(out, provenance=provenance(inputs, {"command": "latentz calibrate"}))
     click.echo(
-        f"{out}: {len(cal.kept)} of {len(cal.culled)} particles kept, tilt {cal.tilt_mrad:.2f} mrad"
+        f"{out}: {len(cal.kept)} of {len(cal.culled)} particles kept, tilt {cal.tilt_mrad:.2f} "
+        f"mrad, ROI {cal.roi_size} px, field model {cal.field_model}"
     )
+    click.echo(said)
+    click.echo(cal.shape_choice["reason"] if cal.shape_choice else f"shape={cal.shape!r}, as given")
 
 
 @main.command()
@@ -273,15 +354,17 @@ def localize(
     """
     import time
 
+    from latentz._shared.preflight import check_output_file
     from latentz.io import read_stack
     from latentz.pipeline import localize_movies
+    from latentz.quality import summary
     from latentz.readout import frame_rate_hz
 
+    check_output_file(out, (".parquet", ".pq", ".csv", ".hdf5"))
     if exposure_ms <= 0:
         raise ValueError(f"--exposure-ms must be > 0, got {exposure_ms}.")
     shapes = [read_stack(m).shape for m in movies]
     start = time.perf_counter()
-
     camera = {
         "camera_file": camera_file,
         "offset": offset,
@@ -305,9 +388,16 @@ def localize(
         track=track,
         device=device,
     )
+    counts = summary(table)
+    flags = ", ".join(
+        f"{k.replace('_', ' ')} {v}" for k, v in counts.items() if k not in ("rows", "good") and v
+    )
+    click.echo(
+        f"{out}: {counts['rows']} localizations, {int(table['in_range'].sum())} in range, "
+        f"{counts['good']} good" + (f" (not good: {flags})" if flags else "")
+    )
     achieved_hz = sum(shape[0] for shape in shapes) / (time.perf_counter() - start)
     acquired_hz = frame_rate_hz(exposure_ms, shapes[0][1])
-    click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
     click.echo(
         f"{achieved_hz:.1f} frames/s, {achieved_hz / acquired_hz:.2f}x the acquisition rate "
         f"({acquired_hz:.1f} Hz: {exposure_ms:g} ms exposure, {shapes[0][1]} rows)"
@@ -343,11 +433,22 @@ def localize(
     type=click.Path(dir_okay=False),
     help="Calibration file, to localize a --static movie.",
 )
+@click.option(
+    "--all-rows", is_flag=True, help="Use every in-range localization, not only the good ones."
+)
 @_quiet_option
-def track(locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, quiet) -> None:
-    """Link localizations and measure rigid motion in six degrees of freedom."""
+def track(
+    locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, all_rows, quiet
+) -> None:
+    """Link localizations and measure rigid motion in six degrees of freedom.
+
+    Only the good localizations are used (see the `good` column and its flags) unless
+    --all-rows is given; the command says how many it dropped and why.
+    """
+    from latentz._shared.preflight import check_output_file
     from latentz.pipeline import track_file
 
+    check_output_file(out, (".csv", ".parquet", ".pq"))
     motion = track_file(
         locs,
         out,
@@ -357,7 +458,10 @@ def track(locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, qui
         memory=memory,
         n_sim=n_sim,
         seed=seed,
+        good_only=not all_rows,
     )
+    if motion.attrs.get("quality"):
+        click.echo(motion.attrs["quality"])
     click.echo(f"{out}: {len(motion)} transitions")
 
 
@@ -366,8 +470,10 @@ def track(locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, qui
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path))
 def report(run_dir: Path, out: Path) -> None:
     """Write one self-contained HTML report of a run folder."""
+    from latentz._shared.preflight import check_output_file
     from latentz.pipeline import report_run
 
+    check_output_file(out, (".html", ".htm"))
     click.echo(str(report_run(run_dir, out)))
 
 

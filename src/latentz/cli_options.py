@@ -14,7 +14,7 @@ import numpy as np
 from latentz._shared.validate import check_finite, check_int, check_positive
 from latentz.camera import Camera
 
-__all__ = ["camera_from_options", "stage_offsets_px", "z_positions"]
+__all__ = ["camera_from_options", "read_camera_file", "stage_offsets_px", "z_positions"]
 
 
 def camera_from_options(
@@ -38,28 +38,37 @@ def camera_from_options(
         values = {k: v for k, v in base.as_dict().items() if k != "flatfield"}
         flatfield = base.flatfield
     if camera_file is not None:
-        path = Path(camera_file)
-        if not path.exists():
-            raise FileNotFoundError(f"No such camera file: {path}")
-        try:
-            from_file = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"Camera file {path.name} is not valid JSON: {exc}") from exc
-        if not isinstance(from_file, dict):
-            raise ValueError(f"Camera file {path.name} must hold a JSON object.")
-        unknown = set(from_file) - {"offset", "gain", "readnoise", "pixel_size_nm", "flatfield"}
-        if unknown:
-            raise ValueError(f"Camera file {path.name} has unknown key(s): {sorted(unknown)}.")
-        if "flatfield" in from_file:
-            import tifffile
-
-            flatfield = tifffile.imread(path.parent / from_file.pop("flatfield"))
+        from_file, from_file_flat = read_camera_file(camera_file)
         values.update(from_file)
+        flatfield = from_file_flat if from_file_flat is not None else flatfield
     given = {"offset": offset, "gain": gain, "readnoise": readnoise, "pixel_size_nm": pixel_size_nm}
     values.update({k: v for k, v in given.items() if v is not None})
     if not values and flatfield is None:
         return None
     return Camera(**values, flatfield=flatfield)
+
+
+def read_camera_file(camera_file: str | os.PathLike) -> tuple[dict, np.ndarray | None]:
+    """The values a camera JSON file gives (``offset``, ``gain``, ``readnoise``,
+    ``pixel_size_nm``), and its flatfield image (or None)."""
+    path = Path(camera_file)
+    if not path.exists():
+        raise FileNotFoundError(f"No such camera file: {path}")
+    try:
+        from_file = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"Camera file {path.name} is not valid JSON: {exc}") from exc
+    if not isinstance(from_file, dict):
+        raise ValueError(f"Camera file {path.name} must hold a JSON object.")
+    unknown = set(from_file) - {"offset", "gain", "readnoise", "pixel_size_nm", "flatfield"}
+    if unknown:
+        raise ValueError(f"Camera file {path.name} has unknown key(s): {sorted(unknown)}.")
+    flatfield = None
+    if "flatfield" in from_file:
+        import tifffile
+
+        flatfield = tifffile.imread(path.parent / from_file.pop("flatfield"))
+    return from_file, flatfield
 
 
 def _numbers(path: str | os.PathLike, *, what: str, form: str, ndmin: int) -> np.ndarray:

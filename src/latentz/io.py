@@ -46,13 +46,26 @@ def read_stack(path: str | os.PathLike) -> da.Array:
         raise FileNotFoundError(f"No such image file: {source}")
     if not source.name.lower().endswith(_TIFF_SUFFIXES):
         raise ValueError(f"Expected a .tif/.tiff image file, got {source.name!r}.")
+    if source.stat().st_size == 0:
+        raise ValueError(f"{source.name} is empty (0 bytes): give a TIFF stack of images.")
     try:
         with tifffile.TiffFile(source) as tif:
+            if not tif.series:
+                raise ValueError("no image series found")
+            if 0 in tif.series[0].shape:
+                raise _Empty(f"{source.name} holds no images: give a TIFF stack of images.")
             series = tif.series[0]
             shape, dtype = series.shape, series.dtype
+            if series.axes.endswith("S"):  # interleaved colour samples: (..., rows, cols, 3)
+                raise _Empty(
+                    f"{source.name} holds colour (RGB) images of shape {tuple(shape)}: latentz "
+                    "needs single-channel frames; save the camera's raw grayscale frames."
+                )
             _check_complete(tif, series, source)
         store = tifffile.imread(source, aszarr=True)
         array = da.from_zarr(zarr.open(store, mode="r"))
+    except _Empty:
+        raise
     except (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError) as exc:
         raise ValueError(f"Cannot read {source.name} as a TIFF stack: {exc}") from exc
     if array.shape != tuple(shape) or array.dtype != dtype:
@@ -88,6 +101,10 @@ def read_frames(path: str | os.PathLike, start: int, stop: int) -> np.ndarray:
     a task then carries only the path and the range.
     """
     return np.asarray(open_movie(path)[start:stop])
+
+
+class _Empty(ValueError):
+    """A readable TIFF that holds nothing latentz can use (its message says why and the fix)."""
 
 
 def _check_complete(tif, series, source: Path) -> None:

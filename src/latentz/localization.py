@@ -25,12 +25,15 @@ from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.engine import resolve_device
 from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
 from latentz.io import as_frames, open_movie, read_frames
+from latentz.quality import assess, check_calibration_fits
 from latentz.tracking import localize_tracked
 
 __all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
-#: Columns of the table returned by `localize`, in order.
-LOCALIZE_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
+#: Columns of one chunk's detections and fits, in order.
+_CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
+#: Columns of the table returned by `localize` without a calibration, in order.
+LOCALIZE_COLUMNS = (*_CHUNK_COLUMNS, "duplicate", "unresolved", "good")
 _LOCAL_SCHEDULERS = ("threads", "processes", "synchronous")
 _CHUNK_BYTES = 64 * 2**20
 
@@ -59,7 +62,7 @@ def _localize_chunk(
         from latentz._detect_cuda import detect_arrays_cuda as detector
     found = detector(photons, roi_size=roi_size, threshold=threshold, sigma=sigma)
     if len(found.frame) == 0:
-        return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in LOCALIZE_COLUMNS})
+        return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
     fit = fit_arrays(found.rois, method=method, readnoise=readnoise, device=device)
     row0, col0, edge = found.row0, found.col0, found.edge
@@ -113,7 +116,7 @@ def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndar
 
 
 def _dtype(column: str) -> str:
-    if column in ("converged", "edge", "close_pair"):
+    if column in ("converged", "edge", "close_pair", "duplicate", "unresolved", "good"):
         return "bool"
     return "int64" if column in ("frame", "iterations") else "float64"
 
@@ -148,10 +151,11 @@ def _chunks(n_frames: int, chunk_frames: int) -> Iterator[tuple[int, int]]:
 def localize(
     frames: Any,
     *,
+    calibration: Any = None,
     camera: Camera | None = None,
-    roi_size: int = 11,
+    roi_size: int | None = None,
     threshold: float | None = None,
-    method: str = "mle",
+    method: str | None = None,
     scheduler: Any = None,
     progress: bool = False,
     sigma: float = 1.5,
@@ -160,21 +164,26 @@ def localize(
     detect_every: int = 20,
     device: str = "auto",
 ) -> pd.DataFrame:
-    """Detect and fit every emitter in a movie.
+    """Detect and fit every emitter in a movie; with a calibration, localize it in 3D.
 
     Parameters
     ----------
     frames : array_like (t, H, W) or (H, W), dask array, or path
-        Photoelectrons if ``camera`` is None, else ADU. A path is opened lazily
+        Photoelectrons if no camera is given or implied, else ADU. A path is opened lazily
         (:func:`latentz.io.as_frames`).
+    calibration : Calibration, optional
+        Supplies the camera, ROI size and fit method (any argument given here overrides them),
+        and is applied to the spots (:meth:`~latentz.calibration.Calibration.apply`).
     camera : Camera, optional
         Converts ADU to photoelectrons (offset, gain, flatfield); its read noise enters the fit.
-    roi_size : int
-        Odd side of the square ROIs, in pixels.
+        Default: the calibration's, else none (frames already in photoelectrons).
+    roi_size : int, optional
+        Odd side of the square ROIs, in pixels. Default: the calibration's, else 11. The fitted
+        widths, and so z, depend on it: a ROI other than the calibration's is warned about.
     threshold : float, optional
         Detection threshold in units of the band-passed background noise (default 5).
-    method : {"mle", "wlsq", "lsq"}
-        Estimator, see :func:`latentz.fit.fit_rois`.
+    method : {"mle", "wlsq", "lsq"}, optional
+        Estimator, see :func:`latentz.fit.fit_rois`. Default: the calibration's, else "mle".
     scheduler : None, "threads", "processes", "synchronous", str or distributed.Client
         Where chunks run: None runs them one after another in this process (the numba kernels
         use every core); a string with ``://`` is a dask.distributed
@@ -204,9 +213,26 @@ def localize(
         `LOCALIZE_COLUMNS`: ``frame``, every column of :func:`latentz.fit.fit_rois` with ``x, y``
         in full-frame pixels (pixel ``[i, j]`` centred at ``x = j, y = i``), ``snr`` (detection
         score in noise units), ``edge`` (the ROI was shifted inward at the frame's edge) and
-        ``close_pair`` (another detection lies inside this ROI). Rows are ordered by frame.
+        ``close_pair`` (another detection lies inside this ROI); with a calibration, the
+        columns of :meth:`~latentz.calibration.Calibration.apply` too. Then the quality verdict
+        of :func:`latentz.quality.assess`: ``good`` and the flags that explain it (nothing is
+        dropped); with a calibration that most spots contradict, one warning names the likely
+        cause. Rows are ordered by frame; ``attrs["roi_size"]`` records the ROI.
     """
     movie = as_frames(frames)
+    if calibration is not None:
+        from latentz.calibration import Calibration
+
+        if not isinstance(calibration, Calibration):
+            raise TypeError(
+                "Expected `calibration` to be a latentz Calibration, got "
+                f"{type(calibration).__name__}."
+            )
+        camera = calibration.camera if camera is None else camera
+        roi_size = calibration.roi_size if roi_size is None else roi_size
+        method = calibration.method if method is None else method
+    roi_size = 11 if roi_size is None else roi_size
+    method = "mle" if method is None else method
     if camera is not None and not isinstance(camera, Camera):
         raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
     check_choice("method", method, METHODS)
@@ -254,4 +280,11 @@ def localize(
     finally:
         if client is not None:
             client.close()
-    return pd.concat(tables, ignore_index=True)
+    table = pd.concat(tables, ignore_index=True)
+    table.attrs["roi_size"] = roi_size
+    if calibration is not None:
+        table = calibration.apply(table)
+    table = assess(table, calibration, roi_size=roi_size)
+    if calibration is not None:
+        table = check_calibration_fits(table)
+    return table

@@ -98,6 +98,7 @@ def localize_movies(
     from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.localization import check_camera_offset, localize
+    from latentz.quality import assess, check_calibration_fits
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
@@ -110,7 +111,7 @@ def localize_movies(
     movie_camera = camera_from_options(**overrides, base=cal.camera)
     check_pixel_size(movie_camera.pixel_size_nm, cal.camera.pixel_size_nm)
     if roi_size is None:  # the fitted widths, hence the shape value, depend on the ROI
-        roi_size = cal.options.get("roi_size") or 15
+        roi_size = cal.roi_size
     stacks = [read_stack(m) for m in movies]
     if len({s.shape[1:] for s in stacks}) != 1:
         raise ValueError("Every movie must have the same frame size.")
@@ -137,12 +138,13 @@ def localize_movies(
                 camera=movie_camera,
                 roi_size=roi_size,
                 threshold=threshold,
+                method=cal.method,
                 scheduler=scheduler,
                 track=track,
                 device=device,
             )
             spots["frame"] = spots["frame"] + start
-            located = cal.apply(spots)
+            located = assess(cal.apply(spots), cal, roi_size=roi_size)
         located.insert(
             1,
             "movie",
@@ -161,6 +163,7 @@ def localize_movies(
         resume=resume,
         metadata=meta,
         progress=progress,
+        finish=check_calibration_fits,
     )
     check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
     if fmt == "picasso":
@@ -200,11 +203,14 @@ def track_tables(
     seed: int = 0,
     static_frames: list[int] | None = None,
     static_locs: pd.DataFrame | None = None,
+    good_only: bool = True,
 ) -> dict[str, pd.DataFrame]:
-    """Link the in-range localizations, fit rigid motion, its Monte Carlo uncertainty and
-    Table 1, with the drift column (Supp. Note 2: the RMS apparent translation of the
-    constellation per frame without intentional motion) from ``static_frames`` of ``locs`` or
-    from ``static_locs``, a localization table recorded without intentional motion."""
+    """Link the in-range localizations (only the ``good`` ones unless ``good_only`` is False,
+    see :mod:`latentz.quality`), fit rigid motion, its Monte Carlo uncertainty and Table 1,
+    with the drift column (Supp. Note 2: the RMS apparent translation of the constellation per
+    frame without intentional motion) from ``static_frames`` of ``locs`` or from
+    ``static_locs``, a localization table recorded without intentional motion. The motion
+    table's ``attrs["quality"]`` says how many in-range rows were dropped, and why."""
     from latentz._shared.validate import check_columns
     from latentz.motion import (
         drift,
@@ -214,6 +220,7 @@ def track_tables(
         rigid_motion,
         table1,
     )
+    from latentz.quality import good_rows
 
     check_columns("locs", locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
     if static_frames and static_locs is not None:
@@ -223,15 +230,20 @@ def track_tables(
     if static_locs is not None:
         check_columns("static_locs", static_locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
         still = static_locs[static_locs["in_range"].astype(bool)]
+        if good_only:
+            still, _ = good_rows(still)
         if still["frame"].nunique() < 2:
             raise ValueError("The static localizations must span at least two frames in range.")
-    kept = locs[locs["in_range"].astype(bool)]
+    kept, used = locs[locs["in_range"].astype(bool)], ""
+    if good_only:
+        kept, used = good_rows(kept)
     if kept["frame"].nunique() < 2:
         raise ValueError("Tracking needs in-range localizations in at least two frames.")
     moving = kept if not static_frames else kept[~kept["frame"].isin(static_frames)]
     tracks = link(moving, search_range_nm=search_range_nm, memory=memory, predict=True)
     # where linking leaves a cycle ambiguous, ICP registers the two frames directly
     motion = resolve_by_icp(rigid_motion(tracks), moving, max_distance_nm=search_range_nm)
+    motion.attrs["quality"] = used
     uncertainty = motion_uncertainty(tracks, motion, n_sim=n_sim, seed=seed)
     drift_nm = None
     if static_frames:

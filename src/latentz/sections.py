@@ -31,7 +31,9 @@ def calibration_section(cal, *, particle: int | None = None) -> Section:
     return Section(
         "Calibration",
         f"{len(cal.kept)} of {len(table)} calibration particles kept; substrate tilt "
-        f"{cal.tilt_mrad:.3f} mrad removed.",
+        f"{cal.tilt_mrad:.3f} mrad removed; ROI {cal.roi_size} px. Shape parameter: "
+        + (cal.shape_choice["reason"] if cal.shape_choice else f"shape={cal.shape!r}, as given")
+        + ".",
         figures={
             f"Fig. 2: local models of particle {particle}": figure_png(figure2(cal, particle)),
             "Fig. 3: sigma_z across the field": figure_png(figure3(cal)),
@@ -72,10 +74,14 @@ def emitter_arrays_section(calibrations: dict) -> Section:
 
 
 def localization_section(locs: pd.DataFrame) -> Section:
-    """Counts, the fraction in range, and histograms of z and of the uncertainties."""
+    """Counts, the fraction in range, and histograms of z and of the uncertainties, over the
+    good rows (:func:`latentz.quality.good_rows`; all in-range rows of older tables)."""
     import matplotlib.pyplot as plt
 
-    ok = locs[locs["in_range"]]
+    from latentz.quality import good_rows
+
+    used, dropped = good_rows(locs)
+    ok = used[used["in_range"].astype(bool)]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
     axes[0].hist(ok["z_nm"], bins=60)
     axes[0].set(xlabel="z (nm)", ylabel="localizations")
@@ -86,7 +92,7 @@ def localization_section(locs: pd.DataFrame) -> Section:
     summary = pd.DataFrame(
         {
             "localizations": [len(locs)],
-            "in range": [len(ok)],
+            "good, in range": [len(ok)],
             "frames": [locs["frame"].nunique()],
             "median x_err_nm": [ok["x_err_nm"].median()],
             "median y_err_nm": [ok["y_err_nm"].median()],
@@ -95,7 +101,8 @@ def localization_section(locs: pd.DataFrame) -> Section:
     )
     return Section(
         "Localizations",
-        "Spots outside the calibrated range of the shape parameter get no z (never extrapolated).",
+        "Spots outside the calibrated range of the shape parameter get no z (never extrapolated). "
+        + (dropped[0].upper() + dropped[1:] + "." if dropped else ""),
         figures={"z and uncertainties": figure_png(fig)},
         tables={"Summary": summary},
     )

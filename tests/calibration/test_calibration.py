@@ -19,7 +19,7 @@ def calibrated():
     z_f = np.random.default_rng(20).uniform(-150, 150, 60)
     z_f[5] = 3600.0
     traces, truth = make_traces(60, z_f=z_f, seed=20)
-    return calibrate_traces(traces, camera=CAM, field_model="nearest"), traces, truth
+    return calibrate_traces(traces, camera=CAM, shape="rho_A", field_model="nearest"), traces, truth
 
 
 def test_never_in_focus_is_culled_with_its_reason(calibrated):

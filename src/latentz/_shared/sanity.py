@@ -14,6 +14,11 @@ def _warn(message: str) -> None:
     warnings.warn(message, LatentzWarning, stacklevel=3)
 
 
+def warn(message: str) -> None:
+    """Issue one :class:`LatentzWarning` line (for checks that live beside their data)."""
+    warnings.warn(message, LatentzWarning, stacklevel=3)
+
+
 def check_offset(offset_adu: float, frame_median_adu: float) -> None:
     """Warn if the camera offset (ADU) is above the image median (ADU)."""
     if offset_adu > frame_median_adu:
@@ -30,6 +35,17 @@ def check_pixel_size(pixel_nm: float, calibration_pixel_nm: float, *, rtol: floa
         _warn(
             f"Pixel size {pixel_nm:g} nm is inconsistent with the calibration's "
             f"{calibration_pixel_nm:g} nm; expected {low:g}..{high:g} nm."
+        )
+
+
+def check_roi_size(roi_size: int | None, calibration_roi_size: int) -> None:
+    """Warn if spots were fitted in a ROI (pixels) other than the calibration's: the fitted
+    widths, and so the shape value and z, depend on the ROI. None (unknown) passes."""
+    if roi_size is not None and int(roi_size) != int(calibration_roi_size):
+        _warn(
+            f"The spots were fitted in a {roi_size} px ROI but the calibration in "
+            f"{calibration_roi_size} px; z is biased. Use lz.localize(frames, calibration=cal), "
+            f"or roi_size={calibration_roi_size}."
         )
 
 

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz._shared.sanity import check_widths
+from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.errors import combine, covariance_factor, field_sigma
 from latentz.calibration.local import LocalModels, row_mean
@@ -104,6 +104,86 @@ class Calibration:
     def shape(self) -> str:
         """The shape parameter used for axial localization."""
         return self.options["shape"]
+
+    @property
+    def roi_size(self) -> int:
+        """Side of the ROI the calibration spots were fitted in, pixels: spots to localize with
+        this calibration must be fitted in the same ROI (their widths depend on it)."""
+        return int(self.options.get("roi_size") or 15)
+
+    @property
+    def method(self) -> str:
+        """The fit method of the calibration spots ("mle", "wlsq" or "lsq")."""
+        return self.options.get("method", "mle")
+
+    @property
+    def shape_choice(self) -> dict[str, Any] | None:
+        """Why the shape parameter was picked (``calibrate(shape=None)``): ``chosen``, a one-line
+        ``reason`` and each candidate's ``scores``; None when the user gave the shape."""
+        return self.options.get("shape_choice")
+
+    @property
+    def usable_planes(self) -> np.ndarray:
+        """(n, n_z) mask of each particle's planes where a 1000-photon emitter's Cramér–Rao σ_z
+        stays near its best (:func:`~latentz.calibration.precision.usable_planes`): beyond them
+        the PSF hardly changes with z (far defocus, ring images)."""
+        if "usable_planes" not in self._cache:
+            from latentz.calibration.precision import (
+                REFERENCE_PHOTONS,
+                crlb_sigma_z,
+                usable_planes,
+            )
+
+            sigma = crlb_sigma_z(
+                self.local,
+                self.traces,
+                self.shape,
+                REFERENCE_PHOTONS,
+                roi_size=self.roi_size,
+                readnoise=self.camera.readnoise,
+            )
+            self._cache["usable_planes"] = usable_planes(sigma)
+        return self._cache["usable_planes"]
+
+    @property
+    def usable_z_nm(self) -> np.ndarray:
+        """(n, 2) lowest and highest tilt-corrected z (nm) of each particle's usable planes
+        (NaN where none): spots localized outside it are not `good`."""
+        if "usable_z" not in self._cache:
+            z = np.where(self.usable_planes, self.local.z_nm, np.nan)
+            with np.errstate(invalid="ignore"):
+                import warnings
+
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    span = np.stack([np.nanmin(z, axis=1), np.nanmax(z, axis=1)], axis=1)
+            self._cache["usable_z"] = span
+        return self._cache["usable_z"]
+
+    def curves_at(self, particle: Any, z_nm: Any) -> dict[str, np.ndarray]:
+        """The calibration curves wx, wy (px) and ρ of particles ``particle`` at tilt-corrected
+        ``z_nm`` (arrays of one shape), from their traces smoothed by a running median of 5
+        planes; ``<name>_scatter``: each particle's RMS scatter of the trace about that curve."""
+        if "curves" not in self._cache:
+            from scipy.ndimage import median_filter
+
+            curves = {}
+            for name in ("wx", "wy", "rho"):
+                raw = self.traces[name]
+                filled = pd.DataFrame(raw.T).ffill().bfill().to_numpy().T
+                smooth = median_filter(filled, size=(1, 5), mode="nearest")
+                curves[name] = smooth
+                with np.errstate(invalid="ignore"):
+                    curves[f"{name}_scatter"] = np.sqrt(np.nanmean((raw - smooth) ** 2, axis=1))
+            self._cache["curves"] = curves
+        curves = self._cache["curves"]
+        p = np.asarray(particle, dtype=int)
+        z = np.asarray(z_nm, dtype=np.float64)
+        out = {}
+        for name in ("wx", "wy", "rho"):
+            out[name] = _interp_rows(self.local.z_nm, curves[name], p, z)
+            out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
+        return out
 
     @property
     def tilt_mrad(self) -> float:
@@ -323,6 +403,7 @@ class Calibration:
             calibrated range, z_nm and the corrected positions are NaN and in_range is False.
         """
         check_columns("spots", spots, SPOT_COLUMNS)
+        check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
         check_widths(spots[["wx", "wy"]].to_numpy(dtype=np.float64), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         shape = self.shape

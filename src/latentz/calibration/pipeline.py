@@ -16,13 +16,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from latentz._shared.sanity import LatentzWarning, check_z_step
+from latentz._shared.sanity import LatentzWarning, check_z_step, warn
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.calibration.calibration import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
 from latentz.calibration.local import LocalOptions, fit_local
+from latentz.calibration.roi import MIN_ROI, roi_for_width, roi_limit, widest_spot_px
 from latentz.calibration.shape import SHAPES, astigmatism_angle
+from latentz.calibration.shape_choice import choose, score_shapes
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces, extract_traces
 from latentz.camera import Camera
@@ -30,6 +32,11 @@ from latentz.engine import resolve_device
 
 __all__ = ["calibrate", "calibrate_traces"]
 
+#: First ROI of an automatic choice (pixels), and the most calibrations it may take.
+_FIRST_ROI = 15
+_ROI_PASSES = 3
+#: Fewer kept particles than this cannot carry models across the field.
+_MIN_WIDEFIELD = 3
 #: Fewer usable particles than this make population statistics meaningless: only outright
 #: failures are culled then.
 _MIN_POPULATION = 10
@@ -42,8 +49,9 @@ def _check_z(z_nm: Any, options: LocalOptions) -> np.ndarray:
     need = max(options.lateral_order, options.shape_order, options.amplitude_order) + 2
     if z.size < need:
         raise ValueError(
-            f"The calibration needs at least {need} planes for polynomials of order "
-            f"{need - 2} (lateral_order/shape_order), got {z.size} values in `z_nm`."
+            f"The calibration needs a through-focus stack of at least {need} planes (one image "
+            f"per z) to model each particle, got {z.size}: record more planes, or lower "
+            f"lateral_order/shape_order (now {need - 2})."
         )
     steps = np.diff(z)
     if not (np.all(steps > 0) or np.all(steps < 0)):
@@ -70,11 +78,11 @@ def calibrate(
     z_nm: Any,
     *,
     camera: Camera | None = None,
-    shape: str = "rho_A",
+    shape: str | None = None,
     field_model: str = "auto",
     n_terms: int = 400,
     progress: bool = False,
-    roi_size: int = 15,
+    roi_size: int | None = None,
     positions: Sequence[Any] | None = None,
     stage_offsets_px: Any = None,
     threshold: float | None = None,
@@ -92,8 +100,10 @@ def calibrate(
         Piezo position of each plane (shared by all stacks), strictly monotonic, nm.
     camera : Camera, optional
         Camera model (default ``Camera()``); its pixel size converts positions to nm.
-    shape : {"rho", "rho_w", "rho_A", "auto", "auto_A"}
-        Shape parameter for axial localization (paper eqs. 4–6; "auto" for any astigmatism angle).
+    shape : {"rho", "rho_w", "rho_A", "auto", "auto_A"}, optional
+        Shape parameter for axial localization (paper eqs. 4–6; "auto" for any astigmatism
+        angle). None picks the one with the best expected σ_z for emitters of 100–10,000
+        photons (:mod:`latentz.calibration.shape_choice`); ``cal.shape_choice`` says why.
     field_model : {"auto", "zernike", "natural", "nearest"}
         How models are carried across the field. "auto" (default): the best by leave-one-
         particle-out cross-validation of the whole prediction, never worse than "nearest"
@@ -102,8 +112,11 @@ def calibrate(
         Number of Zernike terms (for ``field_model="zernike"``).
     progress : bool
         Show a progress bar.
-    roi_size : int
-        Side of the fixed ROI that follows each particle through focus, pixels.
+    roi_size : int, optional
+        Side of the fixed ROI that follows each particle through focus, pixels. None picks the
+        smallest odd ROI that holds the most defocused kept spot
+        (:mod:`latentz.calibration.roi`), calibrating again until it holds; where the images are
+        too small for it, the largest that fits, with a warning.
     positions : sequence of array_like (k, 2), optional
         Explicit (x, y) pixel positions of the particles in each stack instead of detection,
         for example ``[[(10, 10)]]`` for a stack holding a single bead.
@@ -139,7 +152,8 @@ def calibrate(
         raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
     local_options = _local_options(dict(options))
     z = _check_z(z_nm, local_options)
-    check_choice("shape", shape, SHAPES)
+    if shape is not None:
+        check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_CHOICES)
     device = resolve_device(device)
     if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
@@ -156,20 +170,9 @@ def calibrate(
                 f"Stack {s} has {stack.shape[0]} planes but `z_nm` has {z.size} values."
             )
         loaded.append(stack)
+    _check_offset(camera, loaded)
     order = np.argsort(z)
     loaded = [stack[order] for stack in loaded]
-    traces = extract_traces(
-        loaded,
-        z[order],
-        camera=camera,
-        roi_size=roi_size,
-        positions=positions,
-        stage_offsets_px=stage_offsets_px,
-        threshold=threshold,
-        method=method,
-        progress=progress,
-        device=device,
-    )
     if "field_shape" not in options:
         offsets = np.zeros((len(loaded), 2)) if stage_offsets_px is None else stage_offsets_px
         offsets = np.asarray(offsets, dtype=np.float64).reshape(len(loaded), 2)
@@ -177,22 +180,97 @@ def calibrate(
             int(max(o[1] + st.shape[1] for o, st in zip(offsets, loaded, strict=True))),
             int(max(o[0] + st.shape[2] for o, st in zip(offsets, loaded, strict=True))),
         )
-    return calibrate_traces(
-        traces,
-        camera=camera,
-        shape=shape,
-        field_model=field_model,
-        n_terms=n_terms,
-        roi_size=roi_size,
-        **options,
-    )
+    limit = min(roi_limit(st.shape[1:]) for st in loaded)
+    if roi_size is not None:
+        roi_size = check_int("roi_size", roi_size, minimum=MIN_ROI)
+        if positions is None and roi_size > limit:
+            side = min(min(st.shape[1:]) for st in loaded)
+            raise ValueError(
+                f"roi_size={roi_size} does not fit the {side} px calibration images (a particle "
+                f"must lie a pixel inside the edge): use roi_size <= {limit}, or None."
+            )
+
+    def run(roi: int) -> tuple[Calibration, list]:
+        """One calibration with ``roi``, and the warnings it gave (to say once, not per pass)."""
+        failure = None
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                cal = _calibrate_once(roi)
+            except Exception as exc:  # said after its warnings, outside the recording
+                failure = exc
+        if failure is not None:
+            _say(caught)
+            raise failure
+        return cal, caught
+
+    def _calibrate_once(roi: int) -> Calibration:
+        traces = extract_traces(
+            loaded,
+            z[order],
+            camera=camera,
+            roi_size=roi,
+            positions=positions,
+            stage_offsets_px=stage_offsets_px,
+            threshold=threshold,
+            method=method,
+            progress=progress,
+            device=device,
+        )
+        return calibrate_traces(
+            traces,
+            camera=camera,
+            shape=shape,
+            field_model=field_model,
+            n_terms=n_terms,
+            roi_size=roi,
+            method=method,
+            **options,
+        )
+
+    if roi_size is not None:
+        cal, caught = run(roi_size)
+        _say(caught)
+        return cal
+    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit)
+
+
+def _say(caught: list) -> None:
+    """Issue again each distinct warning recorded in ``caught``."""
+    for message in {str(w.message): w for w in caught}.values():
+        warnings.warn(message.message, message.category, stacklevel=4)
+
+
+def _calibrate_roi(run, roi: int, limit: int) -> Calibration:
+    """Calibrate with the ROI the widest kept spot needs (:func:`roi_for_width`), starting from
+    ``roi`` pixels (at most :data:`_ROI_PASSES` calibrations: the usable planes, and so the
+    widest spot, move a little with the ROI), never above ``limit``; warn when the images are
+    too small for it."""
+    cal, caught = run(roi)
+    for _ in range(_ROI_PASSES - 1):
+        width = widest_spot_px(cal)
+        if not np.isfinite(width):
+            break
+        wanted = min(roi_for_width(width), limit)
+        if wanted == roi:
+            break
+        roi = wanted
+        cal, caught = run(roi)
+    _say(caught)
+    width = widest_spot_px(cal)
+    if np.isfinite(width) and roi_for_width(width) > limit:
+        warn(
+            f"The widest kept spot ({width:.2g} px) needs a {roi_for_width(width)} px ROI but "
+            f"the calibration images allow {limit} px: calibrated with {roi} px."
+        )
+    return cal
 
 
 def calibrate_traces(
     traces: Traces,
     *,
     camera: Camera | None = None,
-    shape: str = "rho_A",
+    shape: str | None = None,
     field_model: str = "auto",
     n_terms: int = 400,
     tilt: bool = True,
@@ -201,6 +279,7 @@ def calibrate_traces(
     neighbours: int = 8,
     field_shape: tuple[int, int] | None = None,
     roi_size: int | None = None,
+    method: str = "mle",
     iterations: int = 0,
     sources: Sequence[str] | None = None,
     **options: Any,
@@ -216,7 +295,8 @@ def calibrate_traces(
     _check_z(traces.z_nm, local_options)
     if np.any(np.diff(traces.z_nm) <= 0):
         raise ValueError("Expected the traces' `z_nm` to be strictly increasing.")
-    check_choice("shape", shape, SHAPES)
+    if shape is not None:
+        check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_CHOICES)
     n_terms = check_int("n_terms", n_terms, minimum=1)
     cull_threshold = check_positive("cull_threshold", cull_threshold)
@@ -225,11 +305,17 @@ def calibrate_traces(
         raise ValueError("No calibration particles: the traces are empty.")
     check_z_step(float(np.median(np.diff(traces.z_nm))), _width_rate(traces, camera))
     theta = None
-    if shape in ("auto", "auto_A"):
-        theta = astigmatism_angle(traces["wx"], traces["wy"], traces["rho"])
-    shapes = tuple(dict.fromkeys((*PAPER_SHAPES, shape)))
+    if shape in (None, "auto", "auto_A"):
+        try:
+            theta = astigmatism_angle(traces["wx"], traces["wy"], traces["rho"])
+        except ValueError:
+            if shape is not None:
+                raise
+    if shape is None:
+        shapes = SHAPES if theta is not None else PAPER_SHAPES
+    else:
+        shapes = tuple(dict.fromkeys((*PAPER_SHAPES, shape)))
     local = fit_local(traces, shapes, theta=theta, options=local_options)
-
     px = camera.pixel_size_nm
     position = traces.position()
     substrate_nm = position * px
@@ -238,8 +324,22 @@ def calibrate_traces(
         "fit_failed": converged < 0.8,
         "never_in_focus": ~local.in_focus,
         "crowded": traces.crowded,
-        "no_monotonic_range": ~local.shapes[shape].inverse.valid,
     }
+    _check_kept(np.any(np.stack(list(hard.values())), axis=0), _reasons(hard), roi_size)
+    choice = None
+    if shape is None:
+        usable = ~np.any(np.stack(list(hard.values())), axis=0)
+        level = _tilt_plane(substrate_nm, local.z_f, usable, tilt)
+        table = score_shapes(
+            local.shifted(level(*substrate_nm.T)),
+            traces,
+            usable,
+            roi_size=roi_size or _FIRST_ROI,
+            readnoise=camera.readnoise,
+            positions=position,
+        )
+        shape, choice = choose(table)
+    hard["no_monotonic_range"] = ~local.shapes[shape].inverse.valid
     failed = np.any(np.stack(list(hard.values())), axis=0)
     plane = _tilt_plane(substrate_nm, local.z_f, ~failed, tilt)
     culled, reason = failed, np.array([""] * len(traces), dtype=object)
@@ -250,12 +350,12 @@ def calibrate_traces(
         culled, reason, scores = cull_particles(features, hard, threshold=cull_threshold)
         plane = _tilt_plane(substrate_nm, local.z_f, ~culled, tilt)
     else:
-        reason = np.array(
-            [",".join(k for k, m in hard.items() if m[i]) for i in range(len(traces))],
-            dtype=object,
-        )
+        reason = _reasons(hard)
+    _check_kept(culled, reason, roi_size)
+    field_model = _field_model_for(field_model, int(np.count_nonzero(~culled)))
     options_used = {
         "shape": shape,
+        "shape_choice": choice,
         "field_model": field_model,
         "n_terms": n_terms,
         "tilt": tilt,
@@ -264,6 +364,7 @@ def calibrate_traces(
         "neighbours": neighbours,
         "field_shape": _field_shape(traces, field_shape),
         "roi_size": roi_size,
+        "method": method,
         "iterations": check_int("iterations", iterations, minimum=0),
         "sources": [str(x) for x in sources] if sources is not None else [],
         **{k: getattr(local_options, k) for k in LocalOptions.__dataclass_fields__},
@@ -278,6 +379,51 @@ def calibrate_traces(
         scores=scores,
         options=options_used,
     )
+
+
+def _check_offset(camera: Camera, stacks: list[np.ndarray]) -> None:
+    """Refuse a camera offset (ADU) above the median of the calibration images: most pixels
+    would hold negative photons and no particle would be found."""
+    sample = np.concatenate([np.ravel(st[:: max(1, len(st) // 8), ::2, ::2]) for st in stacks])
+    median = float(np.median(sample))
+    if camera.offset > median:
+        raise ValueError(
+            f"The camera offset {camera.offset:g} ADU is above the median {median:g} ADU of the "
+            "calibration images: give the camera's real offset (below that), or leave it out "
+            "to estimate it."
+        )
+
+
+def _reasons(flags: dict[str, np.ndarray]) -> np.ndarray:
+    """Comma-separated names of the flags each particle carries."""
+    n = len(next(iter(flags.values())))
+    return np.array([",".join(k for k, m in flags.items() if m[i]) for i in range(n)], object)
+
+
+def _check_kept(culled: np.ndarray, reason: np.ndarray, roi_size: int | None) -> None:
+    """One clear error when every calibration particle failed, naming the reasons."""
+    if not culled.all():
+        return
+    counts = pd.Series([r for rs in reason for r in str(rs).split(",") if r]).value_counts()
+    listed = ", ".join(f"{k}: {v}" for k, v in counts.items())
+    hint = "roi_size=None (or a larger ROI)" if "fit_failed" in counts else "the inputs"
+    raise ValueError(
+        f"Every one of the {culled.size} calibration particles failed ({listed}); "
+        f"check {hint}, the camera and the z positions."
+        + (f" The ROI was {roi_size} px." if roi_size else "")
+    )
+
+
+def _field_model_for(field_model: str, n_kept: int) -> str:
+    """``field_model``, or "nearest" (with one line saying so) when too few particles are
+    kept to carry models across the field."""
+    if field_model != "nearest" and n_kept < _MIN_WIDEFIELD:
+        warn(
+            f"{n_kept} calibration particle(s) kept: field_model={field_model!r} needs at least "
+            f"{_MIN_WIDEFIELD}, so the nearest particle's models are used (field_model='nearest')."
+        )
+        return "nearest"
+    return field_model
 
 
 def _width_rate(traces: Traces, camera: Camera) -> float:

@@ -1,0 +1,221 @@
+"""One quality verdict per spot: the ``good`` column and the flags that explain it.
+
+Nothing else decides quality; `localize` calls :func:`assess` and `track`/the report read
+``good``. A spot is good when it
+
+- ``converged`` (the fit's own flag);
+- is not a ``duplicate``: detections whose fits converge within :data:`DUPLICATE_PX` of each
+  other in the same frame are one emitter; the fit with the smallest position error is kept;
+- is not ``unresolved``: no other emitter's fitted centre lies inside its ROI, where its light
+  would bias the fit;
+
+and, with a calibration,
+
+- is not ``out_of_range``: its z lies where the calibration measures z well
+  (:attr:`~latentz.calibration.Calibration.usable_z_nm`: the PSF still changes with z there,
+  no ring images);
+- is not ``inconsistent``: its widths and ρ lie near the calibration curves at its estimated z.
+  ``consistency_chi2`` is ``Σ ((v − v_cal(z)) / σ)²`` over v = wx, wy, ρ, where σ combines the
+  spot's Cramér–Rao error and the calibration curve's scatter; z is fitted from one combination
+  of them, so it has 2 degrees of freedom and is compared with :data:`CHI2_LIMIT` (the 99.9 %
+  point). The amplitude is not compared: single molecules' brightness is unknown.
+
+When most spots of a table are inconsistent, :func:`check_calibration_fits` warns once, naming
+the likely cause, and flags every spot of the table. The cause comes from ``width_ratio``
+(observed over calibrated mean width) and ``axis_mismatch`` (ellipticity across the
+calibration's astigmatism axis).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from latentz._shared.sanity import warn
+
+__all__ = [
+    "assess",
+    "check_calibration_fits",
+    "summary",
+    "good_rows",
+    "QUALITY_COLUMNS",
+    "FLAGS",
+    "CHI2_LIMIT",
+    "DUPLICATE_PX",
+]
+
+#: Fits in one frame closer than this (pixels) are the same emitter.
+DUPLICATE_PX = 1.0
+#: 99.9 % point of χ² with 2 degrees of freedom.
+CHI2_LIMIT = 13.8
+#: Relative scatter of the calibration curves that is not in their fit errors (the ROI's
+#: placement, pixel phase, field variation between particles).
+CURVE_SCATTER = 0.03
+#: Flags that make a spot not good, in the order they are reported.
+FLAGS = ("not_converged", "duplicate", "unresolved", "out_of_range", "inconsistent")
+#: Columns :func:`assess` adds (without a calibration, only the first three and ``good``).
+QUALITY_COLUMNS = (
+    "duplicate",
+    "unresolved",
+    "out_of_range",
+    "inconsistent",
+    "consistency_chi2",
+    "width_ratio",
+    "axis_mismatch",
+    "good",
+)
+#: Share of checked spots that must be inconsistent before the calibration is blamed.
+_MISMATCH_SHARE = 0.5
+
+
+def _duplicates_and_neighbours(spots: pd.DataFrame, half_roi: float) -> tuple[np.ndarray, ...]:
+    """(duplicate, unresolved) flags, frame by frame."""
+    n = len(spots)
+    duplicate, unresolved = np.zeros(n, bool), np.zeros(n, bool)
+    x, y = spots["x"].to_numpy(float), spots["y"].to_numpy(float)
+    ok = spots["converged"].to_numpy(bool) & np.isfinite(x) & np.isfinite(y)
+    error = np.hypot(spots["x_err"].to_numpy(float), spots["y_err"].to_numpy(float))
+    error = np.where(np.isfinite(error), error, np.inf)
+    frames = spots["frame"].to_numpy()
+    order = np.lexsort((error, frames))  # within a frame, the most precise fit first
+    bounds = np.flatnonzero(np.diff(frames[order])) + 1
+    for rows in np.split(order, bounds):
+        rows = rows[ok[rows]]
+        if rows.size < 2:
+            continue
+        points = np.column_stack([x[rows], y[rows]])
+        tree = cKDTree(points)
+        for i, j in sorted(tree.query_pairs(DUPLICATE_PX)):
+            if not duplicate[rows[i]]:
+                duplicate[rows[j]] = True
+        unique = rows[~duplicate[rows]]
+        points = np.column_stack([x[unique], y[unique]])
+        pairs = cKDTree(points).query_pairs(half_roi, p=np.inf, output_type="ndarray")
+        unresolved[unique[pairs.ravel()]] = True
+    return duplicate, unresolved
+
+
+def _consistency(spots: pd.DataFrame, cal: Any) -> dict[str, np.ndarray]:
+    """χ², width ratio and axis mismatch of each spot against the calibration curves at its z."""
+    from latentz.calibration.shape import ellipticity
+
+    n = len(spots)
+    z = spots["z_nm"].to_numpy(float)
+    p = spots["cal_particle"].to_numpy(int)
+    located = np.isfinite(z)
+    curves = cal.curves_at(p[located], z[located])
+    chi2, ratio, mismatch = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    total = np.zeros(located.sum())
+    for name in ("wx", "wy", "rho"):
+        value = spots[name].to_numpy(float)[located]
+        own = spots[f"{name}_err"].to_numpy(float)[located] if f"{name}_err" in spots else 0.0
+        scale = np.abs(curves[name]) if name != "rho" else 1.0
+        spread = np.sqrt(
+            np.square(own) + curves[f"{name}_scatter"] ** 2 + (CURVE_SCATTER * scale) ** 2
+        )
+        total += ((value - curves[name]) / spread) ** 2
+    chi2[located] = total
+    wx, wy, rho = (spots[c].to_numpy(float)[located] for c in ("wx", "wy", "rho"))
+    ratio[located] = (np.abs(wx) + np.abs(wy)) / (np.abs(curves["wx"]) + np.abs(curves["wy"]))
+    theta = cal.local.theta if cal.local.theta is not None else np.pi / 4
+    across = np.array([np.sin(2 * theta), -np.cos(2 * theta)])
+    e_obs = np.stack(ellipticity(wx, wy, rho), axis=-1) @ across
+    e_cal = np.stack(ellipticity(curves["wx"], curves["wy"], curves["rho"]), axis=-1) @ across
+    mismatch[located] = np.abs(e_obs - e_cal)
+    return {"consistency_chi2": chi2, "width_ratio": ratio, "axis_mismatch": mismatch}
+
+
+def assess(
+    spots: pd.DataFrame, calibration: Any = None, *, roi_size: int | None = None
+) -> pd.DataFrame:
+    """A copy of ``spots`` with the quality flags, ``good``, and (with a calibration that was
+    applied to them) the consistency scores; see the module docstring. ``roi_size`` (pixels)
+    defaults to ``spots.attrs["roi_size"]``, then the calibration's, then 11."""
+    out = spots.drop(columns=[c for c in QUALITY_COLUMNS if c in spots.columns])
+    if roi_size is None:
+        roi_size = spots.attrs.get("roi_size") or (calibration.roi_size if calibration else 11)
+    duplicate, unresolved = _duplicates_and_neighbours(out, roi_size / 2)
+    out["duplicate"] = duplicate
+    out["unresolved"] = unresolved
+    good = out["converged"].to_numpy(bool) & ~duplicate & ~unresolved
+    if calibration is not None:
+        z = out["z_nm"].to_numpy(float)
+        p = out["cal_particle"].to_numpy(int)
+        low, high = calibration.usable_z_nm[p].T
+        with np.errstate(invalid="ignore"):
+            inside = out["in_range"].to_numpy(bool) & (z >= low) & (z <= high)
+        scores = _consistency(out, calibration)
+        with np.errstate(invalid="ignore"):
+            inconsistent = scores["consistency_chi2"] > CHI2_LIMIT
+        out["out_of_range"] = ~inside
+        out["inconsistent"] = inconsistent
+        for name, values in scores.items():
+            out[name] = values
+        good &= inside & ~inconsistent
+    out["good"] = good
+    return out
+
+
+def check_calibration_fits(table: pd.DataFrame) -> pd.DataFrame:
+    """``table``, or, when most of its converged, unique spots that the calibration located are
+    inconsistent with it, a copy with every spot ``inconsistent`` and not good, after one
+    warning naming the likely cause: a calibration that contradicts most spots cannot be
+    trusted for the few it happens to match (its curves cross the data's at some z)."""
+    if "inconsistent" not in table.columns:
+        return table
+    checked = (
+        table["converged"].to_numpy(bool)
+        & ~table["duplicate"].to_numpy(bool)
+        & np.isfinite(table["consistency_chi2"].to_numpy(float))
+    )
+    if not checked.any():
+        return table
+    share = float(table["inconsistent"].to_numpy(bool)[checked].mean())
+    if share <= _MISMATCH_SHARE:
+        return table
+    ratio = float(np.nanmedian(table["width_ratio"].to_numpy(float)[checked]))
+    across = float(np.nanmedian(table["axis_mismatch"].to_numpy(float)[checked]))
+    if across > 0.1:
+        cause = (
+            "their astigmatism lies along other axes than the calibration's: another "
+            "microscope, or a rotated camera"
+        )
+    elif abs(np.log(ratio)) > np.log(1.1):
+        cause = (
+            f"their widths are {ratio:.2g}x the calibration's: another pixel size, wavelength "
+            "or objective (another microscope or camera)"
+        )
+    else:
+        cause = "their shapes differ from the calibration's: another microscope or camera"
+    warn(
+        f"The calibration does not fit these data: {share:.0%} of the spots are inconsistent "
+        f"with it ({cause}); every spot is flagged `inconsistent` and not good. Calibrate on "
+        "this microscope and camera."
+    )
+    return table.assign(inconsistent=True, good=False)
+
+
+def summary(table: pd.DataFrame) -> dict[str, int]:
+    """Count of rows, good rows, and rows not good by each flag (a row can carry several)."""
+    counts = {"rows": len(table), "good": int(table["good"].sum())}
+    if "converged" in table:
+        counts["not_converged"] = int((~table["converged"].astype(bool)).sum())
+    for flag in FLAGS[1:]:
+        if flag in table:
+            counts[flag] = int(table[flag].astype(bool).sum())
+    return counts
+
+
+def good_rows(table: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    """The good rows of a localization table and one line saying what was dropped and why
+    (all rows, and an empty line, for a table without the ``good`` column)."""
+    if "good" not in table.columns:
+        return table, ""
+    counts = summary(table)
+    dropped = counts["rows"] - counts["good"]
+    reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items() if k in FLAGS and v)
+    line = f"used {counts['good']} good of {counts['rows']} localizations; dropped {dropped}"
+    return table[table["good"].astype(bool)], line + (f" ({reasons})" if reasons else "")

@@ -1,0 +1,48 @@
+"""`lz.localize(movie, calibration=cal)`: one call with the calibration's camera, ROI and method,
+and the calibration applied; `localize` then `apply` warns when the ROI differs."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import latentz as lz
+from latentz._shared.sanity import LatentzWarning
+from latentz.quality import QUALITY_COLUMNS
+
+
+def test_one_call_equals_localize_then_apply_with_the_calibrations_settings(
+    small_microscope, small_calibration
+):
+    cal = small_calibration
+    frames = small_microscope.gear.frames[:3]
+    one = lz.localize(frames, calibration=cal)
+    spots = lz.localize(frames, camera=cal.camera, roi_size=cal.roi_size, method=cal.method)
+    two = cal.apply(spots)
+    applied = [c for c in two.columns if c not in QUALITY_COLUMNS]
+    pd.testing.assert_frame_equal(one[applied], two[applied])
+    assert one["in_range"].mean() > 0.9 and np.isfinite(one["z_nm"]).mean() > 0.9
+
+
+def test_arguments_override_the_calibration(small_microscope, small_calibration):
+    cal = small_calibration
+    frames = small_microscope.gear.frames[:1]
+    brighter = lz.Camera(**{**cal.camera.as_dict(), "gain": 2 * cal.camera.gain})
+    base = lz.localize(frames, calibration=cal)
+    over = lz.localize(frames, calibration=cal, camera=brighter)
+    # the gain scales the photons; the positions do not depend on it
+    np.testing.assert_allclose(over["photons"].median() / base["photons"].median(), 2, rtol=0.05)
+
+
+def test_apply_warns_when_the_roi_differs(small_microscope, small_calibration):
+    cal = small_calibration
+    frames = small_microscope.gear.frames[:1]
+    other = cal.roi_size - 4
+    spots = lz.localize(frames, camera=cal.camera, roi_size=other)
+    message = f"{other} px ROI but the calibration in {cal.roi_size}"
+    with pytest.warns(LatentzWarning, match=message):
+        cal.apply(spots)
+
+
+def test_calibration_must_be_a_calibration(small_microscope):
+    with pytest.raises(TypeError, match="Calibration"):
+        lz.localize(small_microscope.gear.frames[:1], calibration="cal.h5")

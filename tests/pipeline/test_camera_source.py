@@ -1,0 +1,58 @@
+"""Where the CLI's camera comes from: file metadata (OME-TIFF, ImageJ) and estimates from the
+images, against values written into the files or used to make the images."""
+
+import numpy as np
+import pytest
+import tifffile
+
+from latentz.camera_source import (
+    camera_for_stacks,
+    estimate_gain,
+    estimate_offset,
+    pixel_size_from_metadata,
+)
+
+
+def test_pixel_size_from_ome_and_imagej_metadata(tmp_path):
+    image = np.zeros((3, 16, 16), np.uint16)
+    ome = tmp_path / "a.ome.tif"
+    tifffile.imwrite(ome, image, metadata={"axes": "ZYX", "PhysicalSizeX": 0.108})
+    assert pixel_size_from_metadata(ome) == pytest.approx((108.0, "OME-TIFF PhysicalSizeX"))
+    imagej = tmp_path / "b.tif"
+    tifffile.imwrite(
+        imagej, image, imagej=True, resolution=(1 / 0.16, 1 / 0.16), metadata={"unit": "um"}
+    )
+    size, where = pixel_size_from_metadata(imagej)
+    assert size == pytest.approx(160.0, rel=1e-4) and where == "ImageJ resolution"
+    plain = tmp_path / "c.tif"
+    tifffile.imwrite(plain, image, photometric="minisblack")
+    assert pixel_size_from_metadata(plain) is None
+
+
+@pytest.mark.parametrize("gain", [0.1, 0.5, 2.0])
+def test_gain_and_offset_estimates_from_a_through_focus_stack(gain):
+    # a spot that widens slowly through 40 planes on a 10-photon background; Poisson light,
+    # 2 e- read noise, converted to ADU with `gain` e-/ADU and a 100 ADU offset
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:48, :48]
+    width = np.linspace(1.5, 3.0, 40)[:, None, None]
+    photons = 10 + 4000 / (2 * np.pi * width**2) * np.exp(
+        -((xx - 24) ** 2 + (yy - 24) ** 2) / (2 * width**2)
+    )
+    electrons = rng.poisson(photons) + rng.normal(0, 2.0, photons.shape)
+    adu = np.round(electrons / gain + 100)
+    # the variance of a pixel grows as its mean / gain; planes differ little (slow widening)
+    assert estimate_gain([adu]) == pytest.approx(gain, rel=0.1)
+    # the darkest pixel lies a few read-noise sigmas (2 e- = 2/gain ADU) above the offset
+    assert 100 <= estimate_offset([adu]) + 6 / gain and estimate_offset([adu]) <= 110 / gain + 100
+
+
+def test_the_camera_line_names_every_source(tmp_path):
+    rng = np.random.default_rng(2)
+    stack = 100 + rng.poisson(20, (10, 32, 32)).astype(float)
+    path = tmp_path / "s.tif"
+    tifffile.imwrite(path, stack.astype(np.uint16))
+    camera, line = camera_for_stacks([stack], path, {"gain": 0.5, "offset": None})
+    assert camera.gain == 0.5 and camera.offset == stack.min()
+    assert "gain 0.5 e-/ADU (given)" in line and "(estimated: image minimum)" in line
+    assert "give --pixel-size-nm" in line

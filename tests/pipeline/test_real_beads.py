@@ -1,0 +1,95 @@
+"""Issue 13's Show on real data, defaults only (no shape, ROI, field model or method given):
+the fit3Dcspline bead calibrates on its odd planes and localizes its even planes within ±500 nm;
+the SMLM 2016 AS bead stack calibrates. Truth is on the calibration's axis: z = 0 is the focus
+of the calibration bead, so a plane's true z is its piezo z minus the bead's z_f."""
+
+import numpy as np
+import pytest
+from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, smlm_beads
+
+import latentz as lz
+from latentz.calibration.roi import roi_for_width, widest_spot_px
+
+pytestmark = pytest.mark.realdata
+
+
+def _odd_even(stack, z):
+    cal = lz.calibrate(stack[1::2], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
+    locs = lz.localize(stack[0::2], calibration=cal)
+    true_z = z[0::2][locs["frame"].to_numpy()] - cal.particles["z_f"].iloc[0]
+    near = (np.abs(true_z) <= 500) & locs["in_range"].to_numpy()
+    error = locs["z_nm"].to_numpy()[near] - true_z[near]
+    return cal, error, locs["z_err_nm"].to_numpy()[near], np.count_nonzero(np.abs(z[0::2]) <= 500)
+
+
+CROP = (slice(3, 18), slice(3, 18))
+OVER_COVERS = pytest.mark.xfail(
+    strict=True,
+    reason="z_err_nm covers 94 % on the 15 px crop (RMSE 3 nm, z_err 3-11 nm): the error "
+    "model (calibration/errors.py, issue 12) decides it",
+)
+
+
+@pytest.mark.parametrize(
+    "crop", [None, pytest.param(CROP, marks=OVER_COVERS)], ids=["21px", "15px"]
+)
+def test_fit3d_bead_odd_planes_calibrate_even_planes_localize(crop):
+    stack, z = fit3d_bead()
+    if crop is not None:
+        stack = stack[:, crop[0], crop[1]]
+    cal, error, z_err, planes = _odd_even(stack, z)
+    assert cal.shape == "auto"  # astigmatism along the camera axes: ρ stays near 0
+    assert error.size >= 0.9 * planes
+    assert np.sqrt(np.mean(error**2)) <= 10.0
+    coverage = np.mean(np.abs(error) <= z_err)
+    # ~50 planes: the sampling error of a 68 % coverage is ±7 %; 50–85 % is the issue's band
+    assert 0.5 <= coverage <= 0.85, coverage
+
+
+@pytest.mark.slow
+def test_smlm_beads_calibrate_with_defaults():
+    stack, z = smlm_beads()
+    cal = lz.calibrate(stack, z, camera=lz.Camera(**SMLM_CAMERA))
+    assert len(cal.kept) == 6
+    assert cal.shape == "auto" and "auto" in cal.shape_choice["reason"]
+    # the ROI holds the widest spot on the usable planes: 95 % of its photons, not a px more
+    assert cal.roi_size == roi_for_width(widest_spot_px(cal))
+    # the usable range stops before the ring images below focus (−600..−400 nm)
+    assert np.all(cal.usable_z_nm[cal.kept, 0] > -400)
+
+
+def test_fit3d_crop_shrinks_the_roi_with_one_line():
+    stack, z = fit3d_bead()
+    with pytest.warns(UserWarning, match="calibration images allow 13 px") as record:
+        cal = lz.calibrate(stack[1::2, CROP[0], CROP[1]], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
+    assert cal.roi_size == 13
+    assert sum("ROI" in str(w.message) for w in record) == 1
+
+
+@pytest.mark.slow
+def test_shape_choice_is_robust_to_emitters_dimmer_than_the_beads():
+    """auto_A has the better Cramér–Rao bound on the beads, but divides by A / A_ref: beads 1-5
+    calibrate, bead 0's images at half their amplitude play an emitter of unknown brightness."""
+    from latentz.calibration.pipeline import calibrate_traces
+    from latentz.calibration.traces import traces_table
+
+    stack, z = smlm_beads()
+    camera = lz.Camera(**SMLM_CAMERA)
+    cal = lz.calibrate(stack, z, camera=camera)
+    scores = cal.shape_choice["scores"]
+    assert scores["auto_A"]["crlb_nm"] < scores["auto"]["crlb_nm"]  # better for bright beads
+    assert cal.shape == "auto"  # ... but not for emitters of unknown brightness
+    others = cal.traces.subset(np.arange(1, 6))
+    dim = traces_table(cal.traces.subset([0])).assign(particle=0)
+    dim["amplitude"] *= 0.5
+    rms = {}
+    for shape in ("auto", "auto_A"):
+        model = calibrate_traces(others, camera=camera, shape=shape, roi_size=cal.roi_size)
+        out = model.apply(dim)
+        true_z = dim["z_nm"] - model.plane(*(cal.positions[0] * 100))
+        near = (np.abs(true_z) <= 300).to_numpy()
+        error = (out["z_nm"] - true_z).to_numpy()[near]
+        rms[shape] = np.sqrt(np.nanmean(error**2)) if np.isfinite(error).any() else np.inf
+        rms[shape + "_in_range"] = np.isfinite(error).mean()
+    assert rms["auto"] < 30 and rms["auto_in_range"] > 0.95
+    assert rms["auto_A"] > 3 * rms["auto"] or rms["auto_A_in_range"] < 0.5, rms
