@@ -148,6 +148,35 @@ def _chunks(n_frames: int, chunk_frames: int) -> Iterator[tuple[int, int]]:
         yield start, min(start + chunk_frames, n_frames)
 
 
+def _localize_chunks(
+    frames: Any,
+    movie: Any,
+    chunk_frames: int,
+    options: tuple,
+    scheduler: Any,
+    progress: bool,
+) -> pd.DataFrame:
+    """Detect and fit chunk by chunk, in waves of as many chunks as the scheduler has workers."""
+    chosen, width, client = _scheduler_and_width(scheduler)
+    tables = []
+    spans = list(_chunks(movie.shape[0], chunk_frames))
+    try:
+        with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
+            for w0 in range(0, len(spans), width):
+                wave = spans[w0 : w0 + width]
+                tasks = [
+                    dask.delayed(_localize_chunk)(_source(frames, movie, a, b), a, *options)
+                    for a, b in wave
+                ]
+                tables.extend(dask.compute(*tasks, scheduler=chosen))
+                bar.update(wave[-1][1] - wave[0][0])
+    finally:
+        if client is not None:
+            client.close()
+    table = pd.concat(tables, ignore_index=True)
+    return table
+
+
 def localize(
     frames: Any,
     *,
@@ -258,29 +287,14 @@ def localize(
     if track:
         detect_every = check_int("detect_every", detect_every, minimum=1)
         source = open_movie(frames) if isinstance(frames, str | os.PathLike) else movie
-        return localize_tracked(
+        table = localize_tracked(
             source,
             lambda t: _localize_chunk(np.asarray(source[t : t + 1]), t, *options),
             camera=camera, roi_size=roi_size, threshold=threshold, method=method, sigma=sigma,
             detect_every=detect_every, progress=progress,
         )  # fmt: skip
-    chosen, width, client = _scheduler_and_width(scheduler)
-    tables = []
-    spans = list(_chunks(movie.shape[0], chunk_frames))
-    try:
-        with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
-            for w0 in range(0, len(spans), width):
-                wave = spans[w0 : w0 + width]
-                tasks = [
-                    dask.delayed(_localize_chunk)(_source(frames, movie, a, b), a, *options)
-                    for a, b in wave
-                ]
-                tables.extend(dask.compute(*tasks, scheduler=chosen))
-                bar.update(wave[-1][1] - wave[0][0])
-    finally:
-        if client is not None:
-            client.close()
-    table = pd.concat(tables, ignore_index=True)
+    else:
+        table = _localize_chunks(frames, movie, chunk_frames, options, scheduler, progress)
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(table)
