@@ -25,6 +25,8 @@ def test_quick_demo_writes_report_and_recovers_truth(tmp_path):
     # the aperture array recovers the true 129.3 nm pixel within 0.05 %
     pixel = float(re.search(r"pixel size ([\d.]+)", lines[0]).group(1))
     assert abs(pixel / 129.3 - 1) < 5e-4
-    # the rotation per cycle is recovered within its Monte Carlo uncertainty
+    # every degree of freedom is recovered within twice its Monte Carlo uncertainty (6 cycles:
+    # the RMS of 6 unit normals exceeds 2 with probability ~0.05 %)
     within = pd.read_csv(tmp_path / "motion_vs_truth.csv").set_index("dof")
-    assert within.loc["gamma", "rms_error"] < 3 * within.loc["gamma", "sigma"]
+    assert len(within) == 6
+    assert (within["rms_error"] < 2 * within["sigma"]).all(), within

@@ -287,7 +287,7 @@ def run_demo(
     write_table(motion, paths["motion"])
     write_table(unc.reset_index(names="dof"), paths["uncertainty"])
     write_table(tables["table1"].reset_index(names="dof"), paths["table1"])
-    truth_motion = gear.gear.motion_about(np.asarray(motion.attrs["centre_nm"]))
+    truth_motion = gear.motion_of(tracks)
     compare = motion.merge(truth_motion, on="frame", suffixes=("", "_true"))
     dofs = ["gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm"]
     within = pd.DataFrame(

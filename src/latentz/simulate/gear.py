@@ -81,6 +81,33 @@ class GearMovie:
         )
         return meta
 
+    def motion_of(self, tracks: pd.DataFrame, *, max_px: float = 3.0) -> pd.DataFrame:
+        """The true motion of the transitions that ``tracks`` measure, about the same centre.
+
+        :func:`latentz.motion.rigid_motion` expresses translations about the mean of all tracked
+        positions, in the microscope's coordinates (field position × pixel size, calibrated z).
+        The same point of the body, in the sample coordinates of the truth, is the mean of the
+        *true* positions of the same observations; the truth is expressed about it
+        (:meth:`GearTruth.motion_about`), so the two compare directly whichever spots were
+        missed. Passing the measured centre itself would mix the two coordinate systems: an
+        error of (R − I) times the gear's position in the field, γ × 130 µm in Δx and Δy.
+
+        Each row of ``tracks`` (frame, x, y in this movie's frame pixels) is matched to the
+        nearest true particle of its frame; one farther than ``max_px`` is an error.
+        """
+        from scipy.spatial import cKDTree
+
+        true = []
+        for frame, group in tracks.groupby("frame"):
+            here = self.truth[self.truth["frame"] == frame]
+            dist, idx = cKDTree(here[["x", "y"]].to_numpy()).query(group[["x", "y"]].to_numpy())
+            if np.max(dist) > max_px:
+                raise ValueError(
+                    f"A tracked spot of frame {frame} is not within {max_px} px of a particle."
+                )
+            true.append(here[["x_nm", "y_nm", "z_nm"]].to_numpy()[idx])
+        return self.gear.motion_about(np.concatenate(true).mean(axis=0))
+
     def write(self, out_dir: str | os.PathLike) -> list[Path]:
         """Write the movie, truth, motion and metadata to ``out_dir``."""
         from latentz.simulate._write import write_files
