@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import click
@@ -16,6 +17,20 @@ from latentz import __version__
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERNAL = 1
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """latentz's own warnings reach the user as one line, without file paths or source lines;
+    other libraries' warnings as Python prints them."""
+    from latentz._shared.sanity import LatentzWarning
+
+    if issubclass(category, LatentzWarning):
+        click.echo(f"latentz: warning: {_first_line(message)}", err=True)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
 
 
 def _first_line(exc: BaseException) -> str:
@@ -49,6 +64,7 @@ class _Group(click.Group):
 @click.version_option(__version__, prog_name="latentz")
 def main() -> None:
     """latentz: accurate 3D localization microscopy by intrinsic aberration calibration."""
+    warnings.showwarning = _show_warning
 
 
 @main.command()
@@ -317,7 +333,7 @@ def demo(out_dir: Path, quick: bool, seed: int, quiet: bool) -> None:
     """Simulate, calibrate, localize, track and report: the whole job on built-in data."""
     from latentz.demo import run_demo
 
-    summary = run_demo(out_dir, quick=quick, seed=seed, progress=not quiet)
+    summary = run_demo(out_dir, quick=quick, seed=seed, progress=_progress(quiet))
     for line in summary:
         click.echo(line)
 
