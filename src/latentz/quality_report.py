@@ -102,7 +102,7 @@ def _why(cal: Any, key: str, default: str) -> str:
 
 
 def quality_section(
-    cal: Any, *, name: str = "", truth_errors: pd.DataFrame | None = None, truth_label: str = ""
+    cal: Any, *, name: str = "", truth: dict[str, pd.DataFrame] | None = None
 ) -> Section:
     """What a reader must know before trusting the rest of a report on calibration ``cal``.
 
@@ -111,11 +111,10 @@ def quality_section(
     cal : Calibration
     name : str
         The calibration's file or run name, for the title.
-    truth_errors : DataFrame, optional
+    truth : dict of DataFrame, optional
         Actual errors against truth (``err_x_nm`` …) with the reported ``x_err_nm`` … of the same
-        localizations (the demo); otherwise the calibration's cross-validation is used.
-    truth_label : str
-        What ``truth_errors`` are, e.g. "gear particles against simulated truth".
+        localizations (the demo), by what they are (e.g. "gear particles against simulated
+        truth"); otherwise the calibration's cross-validation is used.
     """
     particles = cal.particles
     n, n_kept = len(particles), int((~particles["culled"]).sum())
@@ -141,8 +140,11 @@ def quality_section(
         f"{cal.camera.pixel_size_nm:.2f} nm; substrate tilt {cal.tilt_mrad:.2f} mrad removed.",
     ]
     tables = {}
-    if truth_errors is not None:
-        table = coverage_table(truth_errors, source=truth_label or "truth")
+    if truth:
+        table = pd.concat(
+            [coverage_table(errors, source=label) for label, errors in truth.items()],
+            ignore_index=True,
+        )
     else:
         crossval = _crossval_errors(cal)
         table = (

@@ -18,7 +18,7 @@ import pandas as pd
 
 from latentz._shared.atomic import write_bytes_atomic, write_text_atomic
 
-__all__ = ["Section", "figure_png", "save_figure", "table_html", "write_report"]
+__all__ = ["Section", "figure_png", "mark_empty", "save_figure", "table_html", "write_report"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,23 @@ def figure_png(fig, *, dpi: int = 110) -> bytes:
     return png
 
 
+def mark_empty(ax, text: str) -> None:
+    """Say in words why a panel has no data, instead of leaving an empty axis."""
+    ax.cla()
+    ax.set(xticks=[], yticks=[])
+    ax.text(
+        0.5,
+        0.5,
+        text,
+        ha="center",
+        va="center",
+        wrap=True,
+        fontsize=9,
+        color="0.3",
+        transform=ax.transAxes,
+    )
+
+
 def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> Path:
     """Save a matplotlib figure as a PNG file atomically (the figure stays open)."""
     target = Path(path)
@@ -69,7 +86,9 @@ nav a { margin-right: 1em; }
 
 
 def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
+    """An ASCII anchor and file name: letters and digits, single hyphens between words."""
+    words = "".join(c if c.isascii() and c.isalnum() else " " for c in text.lower()).split()
+    return "-".join(words) or "section"
 
 
 def _unique(slugs: list[str]) -> list[str]:
@@ -90,14 +109,20 @@ def _decimals(values: pd.Series) -> int:
     return int(np.clip(2 - np.floor(np.log10(finite.median())), 0, 6))
 
 
+def _significant(v: float) -> str:
+    """Three significant digits, without exponents below 10⁵."""
+    return f"{v:.0f}" if 1e3 <= abs(v) < 1e5 else f"{v:.3g}"
+
+
 def table_html(table: pd.DataFrame) -> str:
-    """A table as HTML: one number format per column (no "2020" beside "27.98"), integers as
-    integers, and an em dash for a missing value."""
-    formats = {
-        col: (lambda d: lambda v: f"{v:.{d}f}")(_decimals(table[col]))
-        for col in table.columns
-        if pd.api.types.is_float_dtype(table[col])
-    }
+    """A table as HTML: one number format per column (no "2020" beside "27.98"), or three
+    significant digits per cell where a ``unit`` column says the rows differ in unit; integers
+    as integers, and an em dash for a missing value."""
+    floats = [c for c in table.columns if pd.api.types.is_float_dtype(table[c])]
+    if "unit" in table.columns:
+        formats = dict.fromkeys(floats, _significant)
+    else:
+        formats = {c: (lambda d: lambda v: f"{v:.{d}f}")(_decimals(table[c])) for c in floats}
     return table.to_html(index=False, formatters=formats, na_rep="—")
 
 

@@ -41,7 +41,9 @@ def calibration_section(cal, *, particle: int | None = None, name: str = "") -> 
     culled = table[table["culled"]]
     return Section(
         _named("Calibration", name),
-        f"{len(cal.kept)} of {len(table)} calibration particles kept; substrate tilt "
+        f"{len(cal.kept)} of {len(table)} calibration particles kept"
+        + ("" if len(culled) else " (none culled)")
+        + f"; substrate tilt "
         f"{cal.tilt_mrad:.3f} mrad removed. z is on the tilt-corrected axis: z = 0 is the "
         "calibration particles' plane of best focus.",
         figures={
@@ -74,7 +76,9 @@ def calibration_section(cal, *, particle: int | None = None, name: str = "") -> 
                     "reason": culled["reason"].str.replace("_", " ").to_numpy(),
                 }
             )
-        },
+        }
+        if len(culled)
+        else {},
     )
 
 
@@ -88,7 +92,23 @@ def widefield_section(cal, *, name: str = "") -> Section | None:
         "Errors of the field models (Zernike residuals, interpolants by leave-one-out) against z, "
         "and the field maps of apparent lateral motion and of z at a given shape value.",
         figures={name: figure_png(fig) for name, fig in figures_of().items()},
+        captions=_WIDEFIELD_CAPTIONS,
     )
+
+
+_WIDEFIELD_CAPTIONS = {
+    "Fig. 5: widefield errors against z": "RMS error of each field model against z, for x, y "
+    "and z, over the whole (square) field and the circle inscribed in it. Zernike: residuals of "
+    "the fit; natural neighbour and nearest: each particle predicted from the others (leave one "
+    "out). Lower is better; log scale.",
+    "Supp. Figs. 11-14: error maps and histograms": "One row per field model. Left: each "
+    "particle's RMS z error over z, where it sits in the field. Right: histograms of the x, y, "
+    "z errors over all particles and z, square field (grey) and circle (blue), with the excess "
+    "kurtosis (0 for a normal distribution).",
+    "Fig. 4: field maps": "(a) Arrows: how far each calibration particle appears to move "
+    "laterally between the two z in the title (the key gives the scale). (b) Each particle's "
+    "z of best focus after tilt removal: the field curvature.",
+}
 
 
 def emitter_arrays_section(calibrations: dict) -> Section:
