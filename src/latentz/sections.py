@@ -84,9 +84,18 @@ def calibration_section(cal, *, particle: int | None = None, name: str = "") -> 
 
 def widefield_section(cal, *, name: str = "") -> Section | None:
     """Widefield errors of each field model (Fig. 5) and the field maps (Fig. 4), if available."""
+    from latentz.calibration.widefield import MIN_PARTICLES
+
     figures_of = getattr(cal, "evaluate_figures", None)
     if figures_of is None:
         return None
+    if len(cal.kept) < MIN_PARTICLES:
+        return Section(
+            _named("Widefield calibration", name),
+            f"Not shown: models across the field need at least {MIN_PARTICLES} kept calibration "
+            f"particles, and this calibration has {len(cal.kept)}. Its models hold near "
+            "those particles only.",
+        )
     return Section(
         _named("Widefield calibration", name),
         "Errors of the field models (Zernike residuals, interpolants by leave-one-out) against z, "

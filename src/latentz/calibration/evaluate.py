@@ -128,7 +128,7 @@ def evaluate_figures(cal: Calibration) -> dict[str, Any]:
     um = px / 1000  # field positions in µm, like the neighbouring maps
     q = a.quiver(x * um, y * um, (dx1 - dx0)[kept] * px, (dy1 - dy0)[kept] * px, angles="xy")
     # the key inside the map's frame, lower right
-    a.quiverkey(q, 0.92, 0.04, 50, "50 nm", coordinates="axes", labelpos="W")
+    a.quiverkey(q, 0.8, 0.04, 50, "50 nm", coordinates="axes", labelpos="W")
     a.set(
         title=f"(a) apparent lateral motion from z = {lo:.0f} to {hi:.0f} nm",
         xlabel="x (µm)",
