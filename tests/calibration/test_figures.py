@@ -37,3 +37,14 @@ def test_fig3_uses_the_range_its_particles_cover(cal):
     assert fig3.axes[1].get_title() == "(b) mean σ_z over 5.4 µm"
     (histogram,) = [ax.get_title() for ax in fig3.axes if ax.get_title().startswith("(c) n = ")]
     assert int(histogram.split("n = ")[1]) >= 20
+
+
+def test_interpercentile_of_a_normal_sample():
+    x = np.random.default_rng(31).normal(0, 2.0, 100000)
+    # 16th–84th percentile of N(0, σ²) spans 2σ; the sampling error is ~0.5 %
+    assert interpercentile(x) == pytest.approx(4.0, rel=0.02)
+
+
+def test_bad_particle_index(cal):
+    with pytest.raises(ValueError, match="particle"):
+        figure2(cal, 30)
