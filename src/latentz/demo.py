@@ -279,7 +279,11 @@ def run_demo(
 
     def localize_3d(frames: np.ndarray) -> pd.DataFrame:
         found = localize(frames, camera=camera, roi_size=ROI_PX, progress=progress)
-        found = found[found["converged"] & ~found["close_pair"]]
+        # noise detections: widths far (2×) outside those the calibration saw
+        low, high = cal.width_range_px
+        widths = found[["wx", "wy"]]
+        plausible = ((widths >= low / 2) & (widths <= 2 * high)).all(axis=1)
+        found = found[found["converged"] & ~found["close_pair"] & plausible]
         field_spots = found.assign(x=found["x"] + c0, y=found["y"] + r0)
         located = cal.apply(field_spots)
         return located.assign(x=found["x"].to_numpy(), y=found["y"].to_numpy())

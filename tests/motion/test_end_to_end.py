@@ -3,6 +3,7 @@ against the simulated gear's true motion in all six degrees of freedom, within t
 uncertainty."""
 
 import numpy as np
+import pandas as pd
 
 from latentz.calibration import calibrate
 from latentz.localization import localize
@@ -47,6 +48,23 @@ def test_truth_and_measurement_share_the_centre_of_rotation(small_microscope):
     tracks = truth.assign(
         x_nm=truth["field_x"] * pixel, y_nm=truth["field_y"] * pixel, z_nm=truth["z_nm"] + 500.0
     )
+    motion = rigid_motion(tracks)
+    expected = gear.motion_of(tracks)
+    np.testing.assert_allclose(motion[DOF[3:]], expected[DOF[3:]], atol=1e-6)
+
+
+def test_a_spurious_spot_pulls_truth_and_measurement_alike(small_microscope):
+    """A tracked spot that matches no particle moves the measured centre of rotation; the truth
+    follows it, so the translations still agree."""
+    from latentz.motion import rigid_motion
+
+    gear = small_microscope.gear
+    truth = gear.truth[gear.truth["in_frame"]]
+    pixel = gear.optics.pixel_size_nm
+    tracks = truth.assign(x_nm=truth["field_x"] * pixel, y_nm=truth["field_y"] * pixel)
+    ghost = tracks[tracks["frame"] == 1].iloc[:1].assign(particle=99, x=5.0, y=5.0)
+    ghost = ghost.assign(x_nm=5.0 * pixel, y_nm=5.0 * pixel, z_nm=300.0)
+    tracks = pd.concat([tracks, ghost], ignore_index=True)
     motion = rigid_motion(tracks)
     expected = gear.motion_of(tracks)
     np.testing.assert_allclose(motion[DOF[3:]], expected[DOF[3:]], atol=1e-6)
