@@ -27,10 +27,8 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     if issubclass(category, LatentzWarning):
         click.echo(f"latentz: warning: {_first_line(message)}", err=True)
     else:
-        _python_showwarning(message, category, filename, lineno, file, line)
-
-
-_python_showwarning = warnings.showwarning
+        text = warnings.formatwarning(message, category, filename, lineno, line)
+        (file or sys.stderr).write(text)
 
 
 def _first_line(exc: BaseException) -> str:
