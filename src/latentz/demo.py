@@ -364,6 +364,11 @@ def run_demo(
             "Simulated microscope",
             "Pupil-function PSFs through focus at several field positions.",
             figures={"PSF gallery": figure_png(gallery)},
+            captions={
+                "PSF gallery": "One row per field position: an x–z section through the PSF "
+                "(left) and x–y images at five defocus values. The shape changes with z "
+                "(astigmatism) and with the field position: what the calibration learns."
+            },
         ),
         sections.calibration_section(cal, name="simulated calibration stacks"),
         sections.widefield_section(cal, name="simulated calibration stacks"),

@@ -121,7 +121,7 @@ def quality_section(
     reasons = particles.loc[particles["culled"], "reason"].str.split(",").explode().value_counts()
     culled_text = (
         f"{n - n_kept} culled ("
-        + ", ".join(f"{count} {reason.replace('_', ' ')}" for reason, count in reasons.items())
+        + ", ".join(f"{count} {reason}" for reason, count in reasons.items())
         + "; listed under Calibration)"
         if n > n_kept
         else "none culled"

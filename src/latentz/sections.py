@@ -73,7 +73,7 @@ def calibration_section(cal, *, particle: int | None = None, name: str = "") -> 
                     "particle": culled["particle"].to_numpy(),
                     "x (µm)": culled["x_nm"].to_numpy() / 1e3,
                     "y (µm)": culled["y_nm"].to_numpy() / 1e3,
-                    "reason": culled["reason"].str.replace("_", " ").to_numpy(),
+                    "reason": culled["reason"].str.replace(",", ", ").to_numpy(),
                 }
             )
         }

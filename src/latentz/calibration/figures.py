@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from latentz._shared.validate import check_int
 from latentz.calibration.calibration import PAPER_SHAPES, Calibration
@@ -159,6 +160,9 @@ def figure2(
         bottom.set(xlabel="z (nm)", ylabel="σ_z (nm)")
     for col in range(1, cols + 1):
         axes[0, col].set_xlabel("z (nm)")
+    for ax in axes[:, 1:].flat:  # a few z ticks, so that none overlap (not on worded panels)
+        if not ax.texts:
+            ax.xaxis.set_major_locator(MaxNLocator(4))
     fig.tight_layout()
     _save(fig, path)
     return fig

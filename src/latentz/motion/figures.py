@@ -127,6 +127,7 @@ def figure_play(ranges: pd.DataFrame) -> Figure:
     fig = Figure(figsize=(10, 4.8), layout="constrained")
     width = 2 * np.pi / max(len(ranges), 1) * 0.8
     if not (ranges["n_visits"] >= 2).any():
+        fig.set_size_inches(10, 1.4)
         mark_empty(
             fig.add_subplot(),
             "No nominal orientation was visited twice (the record is shorter than one "
@@ -156,7 +157,7 @@ def figure_flexure(
     particle for the scatter plot; otherwise the per-particle correlations are shown."""
     fig = Figure(figsize=(12, 7), layout="constrained")
     ax = fig.add_subplot(2, 2, 1)
-    ax.plot(planar["frame"], planar["res_z_nm"], ".", ms=1, alpha=0.4)
+    ax.plot(planar["frame"], planar["res_z_nm"], ".", ms=1 if len(planar) > 1000 else 3, alpha=0.5)
     ax.set_xlabel("motion cycle")
     ax.set_ylabel("planar residual z (nm)")
     ax.set_title("(a) z residuals of a plane fitted to each frame", fontsize=10)
