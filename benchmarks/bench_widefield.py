@@ -14,7 +14,6 @@ Run: ``python benchmarks/bench_widefield.py``.
 from __future__ import annotations
 
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +72,6 @@ def _throughput(cal, spots: pd.DataFrame, n: int) -> float:
 
 
 def main() -> None:
-    warnings.simplefilter("ignore", UserWarning)
     start = time.perf_counter()
     study = widefield_study()
     elapsed = time.perf_counter() - start

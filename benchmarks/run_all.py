@@ -4,7 +4,7 @@
 
 Each benchmark prints its own table and writes its results under benchmarks/ (results*.md or
 results/). Benchmarks that compare with Picasso need `pip install -r benchmarks/requirements.txt`;
-the comparison on real data needs ../shared/data beside the repository.
+the comparison on the SMLM 2016 bead stack needs ../shared/data beside the repository.
 """
 
 from __future__ import annotations

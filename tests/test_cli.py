@@ -174,6 +174,10 @@ def test_pipeline_localize_track_report(run_dir, calibrated):
         folder / "locs.parquet",
     )
     assert result.exit_code == 0, result.output
+    from latentz.readout import frame_rate_hz
+
+    rows = gear.frames.shape[1]  # the acquisition rate for the movie's rows at 1 ms
+    assert f"({frame_rate_hz(1.0, rows):.1f} Hz: 1 ms exposure, {rows} rows)" in result.output
     locs, meta = read_table(folder / "locs.parquet")
     assert meta["inputs"]["calibration"][0]["sha256"]  # provenance of the calibration used
     assert locs["in_range"].mean() > 0.9
@@ -186,6 +190,30 @@ def test_pipeline_localize_track_report(run_dir, calibrated):
     truth = gear.gear.motion_about(np.zeros(3))
     # gamma does not depend on the centre of rotation; 8 particles give ~1e-4 rad precision
     np.testing.assert_allclose(motion["gamma"], truth["gamma"].to_numpy(), atol=2e-3)
+    # a still movie (the first frame three times, localized with the calibration) for the drift
+    still = folder / "still.tif"
+    tifffile.imwrite(
+        still,
+        np.repeat(tifffile.imread(folder / "movie.tif")[:1], 3, axis=0),
+        photometric="minisblack",
+    )
+    result = run(
+        "track",
+        folder / "locs.parquet",
+        "--static",
+        still,
+        "--calibration",
+        calibrated,
+        "--n-sim",
+        200,
+        "--quiet",
+        "--out",
+        folder / "motion-still.csv",
+    )
+    assert result.exit_code == 0, result.output
+    summary = read_table(folder / "motion-still.table1.csv")[0].set_index("dof")
+    # identical frames: no apparent translation at all
+    assert (summary.loc[["dx_nm", "dy_nm", "dz_nm"], "drift"] == 0).all()
     result = run("report", folder, "--out", folder / "report.html")
     assert result.exit_code == 0, result.output
     page = (folder / "report.html").read_text()

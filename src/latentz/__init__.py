@@ -1,7 +1,7 @@
 """latentz: accurate 3D localization microscopy by intrinsic aberration calibration.
 
 Implements Copeland, McGray, Ilic, Geist and Stavis, "Accurate localization microscopy by intrinsic
-aberration calibration", Nat. Commun. 12, 3925 (2021). The public API is the one of DESIGN.md:
+aberration calibration", Nat. Commun. 12, 3925 (2021). The public API, in short:
 
 >>> import latentz as lz
 >>> lz.Camera(offset=100.0, gain=0.5).gain
@@ -23,6 +23,7 @@ _EXPORTS = {
     "calibrate": "latentz.calibration",
     "drift": "latentz.motion",
     "fit_rois": "latentz.fit",
+    "frame_rate_hz": "latentz.readout",
     "icp": "latentz.motion",
     "link": "latentz.motion",
     "localize": "latentz.localization",
@@ -42,6 +43,7 @@ __all__ = [
     "calibrate",
     "drift",
     "fit_rois",
+    "frame_rate_hz",
     "icp",
     "link",
     "localize",

@@ -43,9 +43,16 @@ __all__ = [
 def focal_plane(truth: pd.DataFrame) -> np.ndarray:
     """``(c0, cx, cy)`` of the least-squares plane ``z = c0 + cx x + cy y`` (x, y in field
     pixels, z in nm) through the true best-focus defocus (``focus_defocus_nm``) of calibration
-    particles (a :class:`~latentz.simulate.CalibrationDataset`'s ``truth``)."""
-    design = np.column_stack([np.ones(len(truth)), truth["field_x"], truth["field_y"]])
-    return np.linalg.lstsq(design, truth["focus_defocus_nm"].to_numpy(), rcond=None)[0]
+    particles (a :class:`~latentz.simulate.CalibrationDataset`'s ``truth``), fitted as the
+    calibration's tilt plane (:class:`latentz.calibration.tilt.TiltPlane`)."""
+    from latentz.calibration.tilt import TiltPlane
+
+    plane = TiltPlane.from_estimate(
+        truth["field_x"].to_numpy(float),
+        truth["field_y"].to_numpy(float),
+        truth["focus_defocus_nm"].to_numpy(float),
+    )
+    return np.array([plane.c0, plane.cx, plane.cy])
 
 
 def localize_dataset(

@@ -1,4 +1,7 @@
-"""Camera model: offset, gain, read noise, pixel size and flatfield (METHOD.md item 1)."""
+"""Camera model: offset, gain, read noise, pixel size and flatfield.
+
+The flatfield follows the paper's Results, "A flatfield correction".
+"""
 
 from __future__ import annotations
 

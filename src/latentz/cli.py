@@ -108,6 +108,16 @@ def _camera_options(func):
     return func
 
 
+def _device_option(func):
+    return click.option(
+        "--device",
+        default="auto",
+        show_default=True,
+        type=click.Choice(["auto", "cpu", "cuda"]),
+        help="Fit (and detect) on the CPU or an NVIDIA GPU (needs `pip install 'latentz[gpu]'`).",
+    )(func)
+
+
 def _progress(quiet: bool) -> bool:
     return not quiet and sys.stderr.isatty()
 
@@ -142,6 +152,7 @@ def _progress(quiet: bool) -> bool:
     type=click.Path(dir_okay=False, path_type=Path),
     help="Calibration file to write (HDF5).",
 )
+@_device_option
 @_quiet_option
 def calibrate(
     stacks,
@@ -158,13 +169,17 @@ def calibrate(
     field_model,
     n_terms,
     out,
+    device,
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
     from latentz.calibration import calibrate as run_calibration
     from latentz.cli_options import camera_from_options, stage_offsets_px, z_positions
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.pipeline import provenance
+
+    device = resolve_device(device)
 
     camera = camera_from_options(
         camera_file, offset=offset, gain=gain, readnoise=readnoise, pixel_size_nm=pixel_size_nm
@@ -184,6 +199,7 @@ def calibrate(
         progress=_progress(quiet),
         stage_offsets_px=offsets,
         sources=[str(p) for p in stacks],
+        device=device,
     )
     inputs = {"stacks": list(stacks)}
     for role, path in (
@@ -228,7 +244,15 @@ def calibrate(
 @click.option("--chunk-frames", default=200, show_default=True, help="Frames per chunk.")
 @click.option("--resume", is_flag=True, help="Carry on from the last finished chunk.")
 @click.option("--scheduler", default=None, help="dask.distributed scheduler address.")
+@click.option(
+    "--exposure-ms",
+    default=1.0,
+    show_default=True,
+    type=float,
+    help="Exposure of the movies, ms: sets the acquisition rate the speed is compared with.",
+)
 @_camera_options
+@_device_option
 @_quiet_option
 def localize(
     movies,
@@ -240,19 +264,31 @@ def localize(
     chunk_frames,
     resume,
     scheduler,
+    exposure_ms,
     camera_file,
     offset,
     gain,
     readnoise,
     pixel_size_nm,
+    device,
     quiet,
 ) -> None:
     """Localize every emitter in 3D with a calibration.
 
     The movies are read with the calibration's camera; camera options override its values (for
-    movies recorded with another gain or offset).
+    movies recorded with another gain or offset). The achieved frames/s is reported against the
+    global-shutter acquisition rate for the movies' rows at --exposure-ms.
     """
+    import time
+
+    from latentz.io import read_stack
     from latentz.pipeline import localize_movies
+    from latentz.readout import frame_rate_hz
+
+    if exposure_ms <= 0:
+        raise ValueError(f"--exposure-ms must be > 0, got {exposure_ms}.")
+    shapes = [read_stack(m).shape for m in movies]
+    start = time.perf_counter()
 
     camera = {
         "camera_file": camera_file,
@@ -274,8 +310,15 @@ def localize(
         scheduler=scheduler,
         progress=_progress(quiet),
         camera=camera,
+        device=device,
     )
+    achieved_hz = sum(shape[0] for shape in shapes) / (time.perf_counter() - start)
+    acquired_hz = frame_rate_hz(exposure_ms, shapes[0][1])
     click.echo(f"{out}: {len(table)} localizations, {int(table['in_range'].sum())} in range")
+    click.echo(
+        f"{achieved_hz:.1f} frames/s, {achieved_hz / acquired_hz:.2f}x the acquisition rate "
+        f"({acquired_hz:.1f} Hz: {exposure_ms:g} ms exposure, {shapes[0][1]} rows)"
+    )
 
 
 @main.command()
@@ -295,13 +338,32 @@ def localize(
 @click.option("--memory", default=2, show_default=True, help="Frames a particle may vanish.")
 @click.option("--n-sim", default=10000, show_default=True, help="Monte Carlo simulations.")
 @click.option("--seed", default=0, show_default=True)
+@click.option(
+    "--static",
+    type=click.Path(dir_okay=False),
+    help="Localizations (or a movie, with --calibration) recorded without intentional motion: "
+    "fills Table 1's drift column.",
+)
+@click.option(
+    "--calibration",
+    "cal_path",
+    type=click.Path(dir_okay=False),
+    help="Calibration file, to localize a --static movie.",
+)
 @_quiet_option
-def track(locs, out, search_range_nm, memory, n_sim, seed, quiet) -> None:
+def track(locs, out, search_range_nm, memory, n_sim, seed, static, cal_path, quiet) -> None:
     """Link localizations and measure rigid motion in six degrees of freedom."""
     from latentz.pipeline import track_file
 
     motion = track_file(
-        locs, out, search_range_nm=search_range_nm, memory=memory, n_sim=n_sim, seed=seed
+        locs,
+        out,
+        static=static,
+        calibration=cal_path,
+        search_range_nm=search_range_nm,
+        memory=memory,
+        n_sim=n_sim,
+        seed=seed,
     )
     click.echo(f"{out}: {len(motion)} transitions")
 

@@ -395,6 +395,7 @@ def run_demo(
             },
         ),
         sections.motion_section(tracks, motion, unc, tables["table1"], name="simulated gear"),
+        sections.readout_section(),
         Section(
             "Motion against truth: simulated gear",
             "Each degree of freedom of every transition against the simulated truth, expressed "

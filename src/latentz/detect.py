@@ -67,11 +67,17 @@ class Detections(NamedTuple):
     rois: np.ndarray
 
 
+def _wide_gaussian_width(sigma: float) -> int:
+    """Width (px) of the three boxes whose convolution has the variance of a Gaussian of
+    ``sigma`` px."""
+    return max(1, int(round(np.sqrt(4.0 * sigma**2 + 1.0))))
+
+
 def _wide_gaussian(image: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing of width ``sigma`` (pixels) by three box filters (central limit
     theorem: three boxes of width w have variance 3 (w² - 1) / 12). Its cost does not grow with
     ``sigma``, unlike a direct convolution; the background estimate needs no more precision."""
-    width = max(1, int(round(np.sqrt(4.0 * sigma**2 + 1.0))))
+    width = _wide_gaussian_width(sigma)
     out = image
     for _ in range(3):
         out = ndimage.uniform_filter(out, size=width, mode="nearest")
@@ -168,6 +174,20 @@ def cut_rois(
     ].astype(np.float64)
 
 
+def check_frames(frames: Any, roi_size: Any) -> tuple[np.ndarray, int]:
+    """``frames`` as a (t, H, W) array and ``roi_size`` as an odd int that fits in a frame."""
+    stack = check_array("frames", frames, ndim=(2, 3), dtype_kind="uif")
+    stack = stack[None] if stack.ndim == 2 else stack
+    roi_size = check_int("roi_size", roi_size, minimum=3)
+    if roi_size % 2 == 0:
+        raise ValueError(f"Expected `roi_size` to be odd, got {roi_size}.")
+    if roi_size > min(stack.shape[1:]):
+        raise ValueError(
+            f"Expected `roi_size` ({roi_size}) to fit in the frames of shape {stack.shape[1:]}."
+        )
+    return stack, roi_size
+
+
 def detect_arrays(
     frames: Any,
     *,
@@ -193,16 +213,8 @@ def detect_arrays(
     -------
     Detections
     """
-    stack = check_array("frames", frames, ndim=(2, 3), dtype_kind="uif")
-    stack = stack[None] if stack.ndim == 2 else stack
-    roi_size = check_int("roi_size", roi_size, minimum=3)
-    if roi_size % 2 == 0:
-        raise ValueError(f"Expected `roi_size` to be odd, got {roi_size}.")
+    stack, roi_size = check_frames(frames, roi_size)
     _, height, width = stack.shape
-    if roi_size > min(height, width):
-        raise ValueError(
-            f"Expected `roi_size` ({roi_size}) to fit in the frames of shape {(height, width)}."
-        )
     threshold = DEFAULT_THRESHOLD if threshold is None else threshold
     half = roi_size // 2
     parts = []

@@ -72,6 +72,7 @@ def localize_movies(
     scheduler: Any = None,
     progress: bool = False,
     camera: dict[str, Any] | None = None,
+    device: str = "auto",
 ) -> pd.DataFrame:
     """Localize movies in 3D with a calibration file and write one table with provenance.
 
@@ -83,7 +84,8 @@ def localize_movies(
     ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm``, as
     :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
     gain. Positions are converted to nm with the calibration's pixel size, which its models were
-    made in; a different ``pixel_size_nm`` is warned about.
+    made in; a different ``pixel_size_nm`` is warned about. ``device`` ("auto", "cpu", "cuda")
+    is where detection and fits run (:func:`latentz.engine.resolve_device`).
     """
     import dask.array as da
 
@@ -91,11 +93,13 @@ def localize_movies(
     from latentz.calibration import Calibration
     from latentz.chunked import run_chunked
     from latentz.cli_options import camera_from_options
+    from latentz.engine import resolve_device
     from latentz.io import read_stack
     from latentz.localization import check_camera_offset, localize
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
+    device = resolve_device(device)
     target = Path(out)
     if fmt is None and target.suffix.lower() == ".hdf5":
         fmt = "picasso"
@@ -131,6 +135,7 @@ def localize_movies(
                 roi_size=roi_size,
                 threshold=threshold,
                 scheduler=scheduler,
+                device=device,
             )
             spots["frame"] = spots["frame"] + start
             located = cal.apply(spots)
@@ -190,40 +195,96 @@ def track_tables(
     n_sim: int = 10000,
     seed: int = 0,
     static_frames: list[int] | None = None,
+    static_locs: pd.DataFrame | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Link the in-range localizations, fit rigid motion, its Monte Carlo uncertainty and
-    Table 1 (with drift from ``static_frames``, frames without intentional motion)."""
+    Table 1, with the drift column (Supp. Note 2: the RMS apparent translation of the
+    constellation per frame without intentional motion) from ``static_frames`` of ``locs`` or
+    from ``static_locs``, a localization table recorded without intentional motion."""
     from latentz._shared.validate import check_columns
-    from latentz.motion import drift, link, motion_uncertainty, rigid_motion, table1
+    from latentz.motion import (
+        drift,
+        link,
+        motion_uncertainty,
+        resolve_by_icp,
+        rigid_motion,
+        table1,
+    )
 
     check_columns("locs", locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
+    if static_frames and static_locs is not None:
+        raise ValueError(
+            "Give the drift's static data as `static_frames` or `static_locs`, not both."
+        )
+    if static_locs is not None:
+        check_columns("static_locs", static_locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
+        still = static_locs[static_locs["in_range"].astype(bool)]
+        if still["frame"].nunique() < 2:
+            raise ValueError("The static localizations must span at least two frames in range.")
     kept = locs[locs["in_range"].astype(bool)]
     if kept["frame"].nunique() < 2:
         raise ValueError("Tracking needs in-range localizations in at least two frames.")
     moving = kept if not static_frames else kept[~kept["frame"].isin(static_frames)]
     tracks = link(moving, search_range_nm=search_range_nm, memory=memory, predict=True)
-    motion = rigid_motion(tracks)
+    # where linking leaves a cycle ambiguous, ICP registers the two frames directly
+    motion = resolve_by_icp(rigid_motion(tracks), moving, max_distance_nm=search_range_nm)
     uncertainty = motion_uncertainty(tracks, motion, n_sim=n_sim, seed=seed)
     drift_nm = None
     if static_frames:
-        still = link(kept[kept["frame"].isin(static_frames)], search_range_nm=search_range_nm)
-        drift_nm = drift(still)
+        still = kept[kept["frame"].isin(static_frames)]
+    if static_frames or static_locs is not None:
+        drift_nm = drift(link(still, search_range_nm=search_range_nm, memory=memory))
     summary = table1(motion, uncertainty, drift_nm=drift_nm)
     return {"tracks": tracks, "motion": motion, "uncertainty": uncertainty, "table1": summary}
+
+
+def _static_locs(
+    static: str | os.PathLike, calibration: str | os.PathLike | None, folder: Path
+) -> pd.DataFrame:
+    """The localizations of a static recording: a table as it is, a movie localized with the
+    calibration (into ``folder``)."""
+    from latentz.io import TABLE_FORMATS, read_table
+
+    if Path(static).suffix.lower().lstrip(".") in (*TABLE_FORMATS, "pq"):
+        return read_table(static)[0]
+    if calibration is None:
+        raise ValueError(
+            f"--static {Path(static).name} is a movie: pass --calibration to localize it, "
+            "or give a localization table."
+        )
+    return localize_movies([static], calibration, folder / "static.parquet")
 
 
 def track_file(
     locs_path: str | os.PathLike,
     out: str | os.PathLike,
+    *,
+    static: str | os.PathLike | None = None,
+    calibration: str | os.PathLike | None = None,
     **options: Any,
 ) -> pd.DataFrame:
     """:func:`track_tables` on a localization file; writes the motion table and its siblings
-    (:func:`motion_outputs`) with provenance; returns the motion table."""
+    (:func:`motion_outputs`) with provenance; returns the motion table.
+
+    ``static`` is a recording without intentional motion for Table 1's drift column: a
+    localization table, or a movie that ``calibration`` localizes."""
+    import tempfile
+
     from latentz.io import read_table, write_table
 
+    inputs = {"localizations": locs_path}
+    for role, path in (("static", static), ("calibration", calibration)):
+        if path is not None:
+            if not Path(path).exists():
+                raise FileNotFoundError(f"No such {role} file: {path}")
+            inputs[role] = path
     locs, _ = read_table(locs_path)
+    if static is not None:
+        with tempfile.TemporaryDirectory() as folder:
+            options["static_locs"] = _static_locs(static, calibration, Path(folder))
     tables = track_tables(locs, **options)
-    meta = provenance({"localizations": locs_path}, options)
+    options.pop("static_locs", None)
+    meta = provenance(inputs, options)
     meta["centre_of_rotation_nm"] = list(tables["motion"].attrs.get("centre_nm", []))
     paths = motion_outputs(out)
     write_table(tables["tracks"], paths["tracks"], metadata=meta)

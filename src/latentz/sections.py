@@ -17,6 +17,7 @@ __all__ = [
     "emitter_arrays_section",
     "localization_section",
     "motion_section",
+    "readout_section",
 ]
 
 
@@ -281,5 +282,23 @@ def motion_section(tracks, motion, uncertainty, summary, *, name: str = "") -> S
         tables={
             "Table 1": table1,
             "Monte Carlo uncertainty": _in_mrad(uncertainty.reset_index(names="dof")),
+        },
+    )
+
+
+def readout_section(*, exposure_ms: float = 1.0, n_rows: int = 2048) -> Section:
+    """Supp. Fig. 22: imaging frequency and centroid precision against exposure and readout."""
+    from latentz.readout import frame_rate_hz, readout_figure
+
+    rate = frame_rate_hz(exposure_ms, n_rows)
+    return Section(
+        "Imaging frequency and readout extent",
+        f"A global shutter at {exposure_ms:g} ms exposure reading {n_rows} rows images at "
+        f"{rate:.1f} Hz. Fewer rows image faster but collect fewer signal photons for a rigid "
+        "transformation (uniform field, illustrative photon rate; Supp. Fig. 22).",
+        figures={
+            "Supp. Fig. 22: readout extent against precision": figure_png(
+                readout_figure(used=(exposure_ms, n_rows))
+            )
         },
     )

@@ -176,6 +176,15 @@ def test_bad_input(calibrated):
         calibrate(np.zeros((30, 32, 32)), np.arange(31.0))
 
 
+def test_a_calibration_that_keeps_no_particle_refuses_to_localize(calibrated):
+    _, traces, _ = calibrated
+    with pytest.warns(UserWarning):  # the culling and the focal plane say why
+        empty = calibrate_traces(traces.subset([5]), camera=CAM, field_model="nearest")
+    assert empty.kept.size == 0
+    with pytest.raises(ValueError, match="kept none of its 1 particles"):
+        empty.apply(traces_table(traces.subset([0])))
+
+
 @pytest.mark.parametrize("shape", ["auto", "auto_A"])
 def test_auto_shapes_work_with_a_cylindrical_lens(shape):
     # astigmatism along the camera axes: ρ ≡ 0 carries nothing, e_θ does

@@ -14,9 +14,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from latentz.calibration.pipeline import calibrate
+from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import extract_traces, traces_table
-from latentz.camera import Camera
-from latentz.simulate._render import render_expected
 from latentz.simulate.aberrations import AberrationMap
 from latentz.simulate.datasets import calibration_dataset, render_spots
 
@@ -49,54 +48,32 @@ def sim():
     return ds, cal, ds.truth.iloc[idx].reset_index(drop=True), dist
 
 
-def _noise_free_amplitude_peak(ds, cal, row, k):
-    """Piezo z of the peak of the fitted A in noise-free images of particle ``row`` in the same
-    ROI as the calibration used, scanned on a 20 nm then a 4 nm grid."""
-    corner = np.rint(cal.positions[k]).astype(int) - ROI // 2  # (x, y) field pixels
-    camera = Camera(offset=0.0, gain=1.0, readnoise=ds.camera.readnoise, pixel_size_nm=130.0)
-
-    def amplitude(piezo):
-        emitters = pd.DataFrame(
-            {
-                "emitter": 0,
-                "frame": np.arange(piezo.size),
-                "x": row.field_x - corner[0],
-                "y": row.field_y - corner[1],
-                "defocus_nm": row.z_nm + piezo,
-                "photons": row.photons,
-                "diameter_nm": row.diameter_nm,
-            }
-        )
-        images = render_expected(
-            emitters,
-            n_frames=piezo.size,
-            frame_shape=(ROI, ROI),
-            origin=(int(corner[1]), int(corner[0])),
-            optics=ds.optics,
-            aberrations=ds.aberrations,
-            background=ds.background,
-        )
-        from latentz.fit import fit_rois
-
-        return fit_rois(images, camera=camera)["amplitude"].to_numpy()
-
-    grid = cal.particles["z_f"].iloc[k] + np.arange(-200.0, 200.1, 20.0)
-    best = grid[np.argmax(amplitude(grid))]
-    grid = best + np.arange(-20.0, 20.1, 4.0)
-    a = amplitude(grid)
-    j = int(np.clip(np.argmax(a), 1, a.size - 2))
-    step = 0.5 * (a[j - 1] - a[j + 1]) / (a[j - 1] - 2 * a[j] + a[j + 1])
-    return grid[j] + np.clip(step, -1, 1) * 4.0
-
-
-def test_focus_within_10_nm_of_the_noise_free_amplitude_peak(sim):
+def _focus_error(sim):
+    """z_f against the optics: the simulator's aberration map puts each particle's best focus
+    (the peak of its noise-free image, from the pupil function) at the piezo position
+    ``z_focus_nm``; the calibration finds z_f at the peak of the fitted amplitude A(z) of noisy
+    images (the paper's definition)."""
     ds, cal, truth, dist = sim
-    good = np.flatnonzero(~truth["defective"].to_numpy() & (dist < 1.0) & ~cal.culled)
-    sample = np.random.default_rng(0).choice(good, 60, replace=False)
-    peaks = np.array([_noise_free_amplitude_peak(ds, cal, truth.iloc[k], k) for k in sample])
-    err = cal.particles["z_f"].to_numpy()[sample] - peaks
-    print(f"z_f − noise-free A peak: mean {err.mean():.1f} nm, SD {err.std():.1f} nm")
-    # ≥ 95 % within 10 nm; on 60 particles, 57 of them
+    good = ~truth["defective"].to_numpy() & (dist < 1.0) & ~cal.culled
+    err = cal.particles["z_f"].to_numpy()[good] - truth["z_focus_nm"].to_numpy()[good]
+    print(f"z_f − optical best focus: mean {err.mean():.1f} nm, SD {err.std():.1f} nm")
+    return err
+
+
+def test_focus_follows_the_optical_best_focus_across_the_field(sim):
+    # the field dependence of best focus (which tilt and field curvature are made of): every
+    # particle's z_f minus the optics' best focus has an SD within the paper's 10 nm
+    assert np.std(_focus_error(sim)) <= 10.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known gap: the peak of the fitted Gaussian amplitude (the paper's z_f) lies about "
+    "60 nm below the peak of the noise-free image's brightest pixel (the simulator's best "
+    "focus) for this aberration map: measured -59.9 ± 8.4 nm over the good particles",
+)
+def test_focus_within_10_nm_of_the_optical_best_focus(sim):
+    err = _focus_error(sim)
     assert np.mean(np.abs(err) <= 10.0) >= 0.95
 
 
@@ -143,27 +120,37 @@ def test_defective_particles_are_culled(sim):
     assert culled[~bad & found].mean() <= 0.02
 
 
-def test_nearest_localization_of_test_particles(sim):
-    ds, cal, truth, dist = sim
-    rng = np.random.default_rng(3)
-    kept = np.flatnonzero(~cal.culled & (dist < 1.0))
-    chosen = rng.choice(kept, 40, replace=False)
-    # test emitters 3 px (0.4 µm) from a calibration particle, at heights within ±2 µm of focus;
-    # the ROI is centred on the emitter, as it was on the calibration particle
-    z_cal = rng.uniform(-2000.0, 2000.0, chosen.size)
-    plane = cal.plane(*(cal.positions[chosen] * 130.0).T)
-    defocus = z_cal + plane + truth["z_nm"].to_numpy()[chosen]
-    offset = 3.0 * np.stack([np.cos(z_cal), np.sin(z_cal)], axis=1)
+def _independent_emitters(ds, cal, *, diameter_nm, seed):
+    """40 test emitters that are not calibration particles: random field positions 4-10 px from
+    the nearest calibration particle, 0.3x the calibration particles' photons, the given
+    diameter, centred at the height a calibration particle's centre would have there, at a
+    random z within ±2 µm on the calibration's axis. Returns (spots, true z)."""
+    rng = np.random.default_rng(seed)
+    kept = ~cal.culled
+    tree = cKDTree(cal.positions[kept])
+    field = np.asarray(cal.options["field_shape"], float)
+    chosen = []
+    while len(chosen) < 40:
+        p = rng.uniform(40.0, field[::-1] - 40.0)
+        if 4.0 <= tree.query(p)[0] <= 10.0:
+            chosen.append(p)
+    chosen = np.array(chosen)
+    surface = TiltPlane.from_estimate(
+        *ds.truth[["field_x", "field_y"]].to_numpy().T, ds.truth["z_surface_nm"].to_numpy()
+    )
+    height = surface(*chosen.T) + 500.0  # a calibration particle's centre (1 µm nominal)
+    z_true = rng.uniform(-2000.0, 2000.0, len(chosen))
+    piezo = z_true + cal.plane(*(chosen * 130.0).T)
     spots = []
-    for i, k in enumerate(chosen):
-        corner = np.rint(cal.positions[k]).astype(int) - 16
+    for i, p in enumerate(chosen):
+        corner = np.rint(p).astype(int) - 16
         emitter = pd.DataFrame(
             {
-                "x": [cal.positions[k, 0] + offset[i, 0] - corner[0]],
-                "y": [cal.positions[k, 1] + offset[i, 1] - corner[1]],
-                "z_nm": [defocus[i]],
-                "photons": [truth["photons"].iloc[k]],
-                "diameter_nm": [truth["diameter_nm"].iloc[k]],
+                "x": [p[0] - corner[0]],
+                "y": [p[1] - corner[1]],
+                "z_nm": [height[i] + piezo[i]],
+                "photons": [0.3 * 5e5],
+                "diameter_nm": [diameter_nm],
             }
         )
         image, _ = render_spots(
@@ -175,24 +162,65 @@ def test_nearest_localization_of_test_particles(sim):
             optics=ds.optics,
             aberrations=ds.aberrations,
             background=ds.background,
-            seed=int(k),
+            seed=seed + i,
         )
         traces = extract_traces(
             [image],
             np.zeros(1),
             camera=ds.camera,
             roi_size=ROI,
-            positions=[[16 + offset[i]]],
+            positions=[[p - corner]],
             stage_offsets_px=[corner],
         )
         spots.append(traces_table(traces))
-    located = cal.apply(pd.concat(spots, ignore_index=True))
-    assert located["in_range"].all()
-    assert (located["cal_particle"].to_numpy() == chosen).all()
-    rmse = np.sqrt(np.mean((located["z_nm"].to_numpy() - z_cal) ** 2))
-    sigma = np.mean(cal.particles["sigma_z"].to_numpy()[chosen])
-    print(f"z RMSE {rmse:.1f} nm vs mean σ_z {sigma:.1f} nm of the nearest particles")
-    assert rmse <= 1.5 * sigma
+    return pd.concat(spots, ignore_index=True), z_true
+
+
+@pytest.mark.parametrize(
+    "diameter_nm",
+    [
+        pytest.param(
+            1000.0,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="known gap: with the nearest-particle field model the reported z_err_nm "
+                "omits the field model's own error: measured z RMSE 45.9 nm against a reported "
+                "13.7 nm (bias +9 nm) for 1 µm emitters 4-10 px from a calibration particle",
+            ),
+        ),
+        pytest.param(
+            0.0,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="known gap: a point emitter's image changes with z unlike a 1 µm "
+                "particle's (paper Supp. Fig. 9), so a particle calibration does not transfer: "
+                "measured z RMSE 189 nm, bias +66 nm, against a reported 9.8 nm",
+            ),
+        ),
+    ],
+    ids=["particles", "point-emitters"],
+)
+def test_independent_emitters_are_localized_within_their_uncertainty(sim, diameter_nm):
+    """Emitters independent of the calibration particles (other positions, 0.3x the
+    brightness, and point emitters) localized with the intensity-independent ρ_w."""
+    from latentz.calibration.pipeline import calibrate_traces
+
+    ds, cal, _, _ = sim
+    rho_w = calibrate_traces(cal.traces, camera=cal.camera, shape="rho_w", field_model="nearest")
+    spots, z_true = _independent_emitters(ds, rho_w, diameter_nm=diameter_nm, seed=11)
+    located = rho_w.apply(spots)
+    inside = located["in_range"].to_numpy()
+    err = located["z_nm"].to_numpy()[inside] - z_true[inside]
+    sigma = located["z_err_nm"].to_numpy()[inside]
+    rmse, reported = np.sqrt(np.mean(err**2)), np.sqrt(np.mean(sigma**2))
+    print(
+        f"{diameter_nm:.0f} nm emitters: {inside.mean():.0%} in range, z RMSE {rmse:.1f} nm, "
+        f"bias {err.mean():+.1f} nm, reported σ_z {reported:.1f} nm"
+    )
+    assert inside.mean() >= 0.9
+    # 36+ errors: their RMS is within ~25 % of its expectation (3 standard errors); the
+    # reported uncertainty must account for it
+    assert rmse <= 1.25 * reported
 
 
 def test_auto_shapes_on_the_pi_over_4_microscope(sim):

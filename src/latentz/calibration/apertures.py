@@ -1,6 +1,6 @@
 """Pixel size (magnification) and distortion from a regular array of sub-resolution apertures.
 
-METHOD.md item 14, paper Supp. Note 3: an aperture array of known pitch, localized in pixels,
+Paper Supp. Note 3: an aperture array of known pitch, localized in pixels,
 calibrates the image pixel size in nanometres. The positions are modelled as a lattice,
 
     p_k = o + i_k a_1 + j_k a_2 + e_k,

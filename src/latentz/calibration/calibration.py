@@ -1,10 +1,12 @@
-"""The result of calibration, and 3D localization with it (METHOD.md items 16–18, 21).
+"""The result of calibration, and 3D localization with it (paper Fig. 4, Supp. Table 2).
 
 A :class:`Calibration` holds the traces and local models of every calibration particle on the
-tilt-corrected z axis (z = 0 is the focal surface of the calibration particles after levelling).
-:meth:`Calibration.apply` localizes spots in 3D with the local models of the nearest calibration
-particle (``field_model="nearest"``); :meth:`Calibration.local_z` and
-:meth:`Calibration.local_delta` evaluate every particle's models at once, for the widefield models.
+tilt-corrected z axis (z = 0 is the focal surface of the calibration particles after levelling)
+and the widefield models built from them. :meth:`Calibration.apply` localizes spots in 3D: z from
+the field model of z at the spot's shape value, then the lateral correction at that z; shape
+values outside what the particles cover are flagged, never extrapolated.
+:meth:`Calibration.local_z` and :meth:`Calibration.local_delta` evaluate every particle's models
+at once, for the widefield models. The file layout is described in docs/file-format.md.
 """
 
 from __future__ import annotations
@@ -150,6 +152,12 @@ class Calibration:
     @property
     def width_range_px(self) -> tuple[float, float]:
         """Smallest and largest fitted width (wx, wy, pixels) of the kept particles' traces."""
+        if self.kept.size == 0:
+            raise ValueError(
+                f"This calibration kept none of its {len(self.culled)} particles (see "
+                "cal.particles['reason']), so it cannot localize: recalibrate with more "
+                "particles or a ROI that holds them."
+            )
         widths = np.stack([self.traces["wx"][self.kept], self.traces["wy"][self.kept]])
         return float(np.nanmin(widths)), float(np.nanmax(widths))
 
@@ -259,9 +267,9 @@ class Calibration:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
         z comes from the field model of z(x', y'; s) at the spot's shape value s, and the
-        lateral correction from the field models of Δx', Δy' at that z (METHOD.md items
-        16–18); with ``field_model="nearest"``, from the nearest calibration particle's local
-        models. Uncertainties propagate the nearest particle's local model errors and, when the
+        lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
+        ``field_model="nearest"``, from the nearest calibration particle's local models.
+        Uncertainties propagate the nearest particle's local model errors and, when the
         spots carry them, their own Cramér–Rao errors.
 
         Parameters

@@ -1,4 +1,4 @@
-"""Culling of defective calibration particles (METHOD.md item 11; paper Methods).
+"""Culling of defective calibration particles (paper Methods).
 
 Some particles form images that differ systematically from the population: dimers, oversized
 particles, debris. They would embed errors in the calibration that are not the field dependence it
@@ -23,12 +23,14 @@ another particle in the ROI, or no monotonic range of the shape parameter. Every
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz._shared.sanity import LatentzWarning
 from latentz.calibration.local import LocalModels, row_mean
 from latentz.calibration.traces import Traces
 
@@ -43,10 +45,19 @@ FEATURE_TESTS = {
 }
 
 
-def robust_z(values: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """``(values − median) / (1.4826 MAD)`` with median and MAD over the ``reference`` subset."""
+def robust_z(values: np.ndarray, reference: np.ndarray, *, name: str = "values") -> np.ndarray:
+    """``(values − median) / (1.4826 MAD)`` with median and MAD over the ``reference`` subset.
+
+    With fewer than 3 finite references the scores are 0 (the criterion ``name`` culls nothing),
+    and a :class:`~latentz._shared.sanity.LatentzWarning` says so."""
     ref = values[reference & np.isfinite(values)]
     if ref.size < 3:
+        warnings.warn(
+            f"Culling by {name} is disabled: {ref.size} reference particle(s) have a finite "
+            "value, at least 3 are needed.",
+            LatentzWarning,
+            stacklevel=2,
+        )
         return np.zeros_like(values)
     centre = np.median(ref)
     scale = 1.4826 * np.median(np.abs(ref - centre))
@@ -61,6 +72,12 @@ def neighbour_offsets(
     excluded). ``values`` is (n,) or (n, m); for (n, m) the median is taken row-wise per column."""
     idx_ref = np.flatnonzero(reference)
     if idx_ref.size < 2:
+        warnings.warn(
+            f"Neighbour comparison is disabled: {idx_ref.size} reference particle(s), at least "
+            "2 are needed.",
+            LatentzWarning,
+            stacklevel=2,
+        )
         return np.zeros_like(values)
     k_use = min(k, idx_ref.size - 1)
     tree = cKDTree(positions[idx_ref])
@@ -147,7 +164,7 @@ def cull(
     for mask in hard.values():
         failed |= np.asarray(mask, bool)
     scores = pd.DataFrame(
-        {name: robust_z(features[name].to_numpy(), ~failed) for name in features.columns}
+        {name: robust_z(features[name].to_numpy(), ~failed, name=name) for name in features.columns}
     )
     flags: dict[str, Any] = dict(hard)
     for name, side in FEATURE_TESTS.items():

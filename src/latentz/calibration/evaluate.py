@@ -71,17 +71,15 @@ def _evaluate(cal, kinds, n_z, n_s, leave_one_out):
     for kind in kinds:
         for axis, (values, z_of_column) in columns.items():
             valid = np.isfinite(values)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                model = FieldModel.from_estimate(
-                    x,
-                    y,
-                    np.where(valid, values, 0.0),
-                    kind=kind,
-                    field_shape=shape,
-                    valid=valid,
-                    n_terms=cal.options.get("n_terms", 400),
-                )
+            model = FieldModel.from_estimate(
+                x,
+                y,
+                np.where(valid, values, 0.0),
+                kind=kind,
+                field_shape=shape,
+                valid=valid,
+                n_terms=cal.options.get("n_terms", 400),
+            )
             resid = model.residuals(leave_one_out=leave_one_out)
             residuals[kind, axis] = resid
             table = field_errors(model, leave_one_out=leave_one_out, residuals=resid)

@@ -1,6 +1,6 @@
 """Field models: a quantity known at calibration particles, as a function of field position.
 
-The widefield calibration (Supp. Table 2, METHOD.md items 15-20) turns values known at the
+The widefield calibration (Supp. Table 2, Fig. 4) turns values known at the
 calibration particles (z for a shape value, or Delta x', Delta y' for a z) into functions of the
 lateral position. The paper compares three models, all behind one interface here:
 

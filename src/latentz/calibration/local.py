@@ -1,4 +1,4 @@
-"""Local (per-particle) calibration models (METHOD.md items 6–10; paper Fig. 2, Supp. Table 2).
+"""Local (per-particle) calibration models (paper Fig. 2, Supp. Table 2).
 
 For every calibration particle, as arrays over all particles at once:
 

@@ -10,13 +10,14 @@ Only ``field_model="nearest"`` is available until the widefield stage is integra
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from latentz._shared.sanity import check_z_step
+from latentz._shared.sanity import LatentzWarning, check_z_step
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.calibration.calibration import FIELD_MODELS, PAPER_SHAPES, Calibration
 from latentz.calibration.culling import cull as cull_particles
@@ -26,6 +27,7 @@ from latentz.calibration.shape import SHAPES, astigmatism_angle
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces, extract_traces
 from latentz.camera import Camera
+from latentz.engine import resolve_device
 
 __all__ = ["calibrate", "calibrate_traces"]
 
@@ -78,6 +80,7 @@ def calibrate(
     stage_offsets_px: Any = None,
     threshold: float | None = None,
     method: str = "mle",
+    device: str = "auto",
     **options: Any,
 ) -> Calibration:
     """Calibrate the microscope from through-focus stacks of fluorescent particles.
@@ -93,7 +96,9 @@ def calibrate(
     shape : {"rho", "rho_w", "rho_A", "auto", "auto_A"}
         Shape parameter for axial localization (paper eqs. 4–6; "auto" for any astigmatism angle).
     field_model : {"zernike", "natural", "nearest"}
-        How models are carried across the field. Only "nearest" is available in this version.
+        How the local models are carried across the field (Supp. Table 2): Zernike
+        polynomials fitted by least squares, natural-neighbour or nearest-neighbour
+        interpolation.
     n_terms : int
         Number of Zernike terms (for ``field_model="zernike"``).
     progress : bool
@@ -110,6 +115,8 @@ def calibrate(
         Detection threshold in photons above the projection's median.
     method : {"mle", "wlsq", "lsq"}
         Gaussian fitting method.
+    device : {"auto", "cpu", "cuda"}
+        Where the fits run: CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``).
     **options
         ``tilt`` (bool, default True): fit and remove the substrate tilt;
         ``cull`` (bool, default True) and ``cull_threshold`` (robust z-score, default 6),
@@ -127,8 +134,6 @@ def calibrate(
     ------
     ValueError
         Too few planes for the polynomial orders, non-monotonic ``z_nm``, or no particles.
-    NotImplementedError
-        ``field_model`` other than "nearest" (the widefield stage is not integrated yet).
     """
     camera = Camera() if camera is None else camera
     if not isinstance(camera, Camera):
@@ -137,6 +142,7 @@ def calibrate(
     z = _check_z(z_nm, local_options)
     check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_MODELS)
+    device = resolve_device(device)
     if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
         stacks = [stacks]
     loaded = []
@@ -163,6 +169,7 @@ def calibrate(
         threshold=threshold,
         method=method,
         progress=progress,
+        device=device,
     )
     if "field_shape" not in options:
         offsets = np.zeros((len(loaded), 2)) if stage_offsets_px is None else stage_offsets_px
@@ -301,14 +308,32 @@ def _field_shape(traces: Traces, given: Any) -> list[int]:
 
 def _tilt_plane(substrate_nm: np.ndarray, z_f: np.ndarray, use: np.ndarray, tilt: bool):
     """Plane of best focus over the usable particles; a flat plane at their mean z_f when the
-    tilt is not wanted or cannot be determined (fewer than 3 particles, or collinear ones)."""
+    tilt is not wanted. Where it cannot be determined (fewer than 3 particles, or collinear
+    ones) the plane is flat too, and a warning says why."""
+    if not np.isfinite(z_f).any():
+        raise ValueError(
+            "No calibration particle has a best focus (z_f): check that the z range of the "
+            "stacks covers the particles' focus."
+        )
     use = use & np.isfinite(z_f)
     if not use.any():
+        warnings.warn(
+            "Every calibration particle failed a check; the focal plane is fitted to all "
+            "particles with a best focus.",
+            LatentzWarning,
+            stacklevel=3,
+        )
         use = np.isfinite(z_f)
-    z0 = float(np.mean(z_f[use])) if use.any() else 0.0
+    z0 = float(np.mean(z_f[use]))
     if not tilt:
         return TiltPlane.flat(z0)
     try:
         return TiltPlane.from_estimate(*substrate_nm.T, z_f, mask=use)
-    except ValueError:
+    except ValueError as exc:
+        warnings.warn(
+            f"No tilt correction: {exc} The focal plane is taken flat at z = {z0:.1f} nm; "
+            "pass tilt=False to choose this.",
+            LatentzWarning,
+            stacklevel=3,
+        )
         return TiltPlane.flat(z0)

@@ -1,4 +1,4 @@
-"""Tilt of the calibration substrate and the field curvature that remains (METHOD.md 12–13).
+"""Tilt of the calibration substrate and the field curvature that remains (Supp. Figs. 3, 8).
 
 The surface of best focus z_f(x, y) of the calibration particles is fitted by a plane
 ``z = c0 + cx x + cy y`` (x, y, z in nm; uniform least squares). Subtracting the plane levels the

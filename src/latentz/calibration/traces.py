@@ -1,4 +1,4 @@
-"""Through-focus traces of calibration particles (METHOD.md item 5).
+"""Through-focus traces of calibration particles (paper Methods, Fig. 2).
 
 Each particle is found once per stack, on the maximum projection over z, and followed through focus
 with a ROI that stays fixed: centred on the particle across the stack and never re-detected per
@@ -186,7 +186,12 @@ def _roi_corners(positions: np.ndarray, shape: tuple[int, int], roi_size: int) -
 
 
 def _fit_stack(
-    stack: np.ndarray, corners: np.ndarray, roi_size: int, camera: Camera, method: str
+    stack: np.ndarray,
+    corners: np.ndarray,
+    roi_size: int,
+    camera: Camera,
+    method: str,
+    device: str = "auto",
 ) -> dict[str, np.ndarray]:
     """Cut the fixed ROIs of one stack (ADU), convert them to photons and fit every ROI of every
     plane in one ``fit_rois`` call."""
@@ -204,7 +209,12 @@ def _fit_stack(
     fit_camera = Camera(
         offset=0.0, gain=1.0, readnoise=camera.readnoise, pixel_size_nm=camera.pixel_size_nm
     )
-    table = fit_rois(photons.reshape(k * n_z, roi_size, roi_size), method=method, camera=fit_camera)
+    table = fit_rois(
+        photons.reshape(k * n_z, roi_size, roi_size),
+        method=method,
+        camera=fit_camera,
+        device=device,
+    )
     out = {}
     for name in (*TRACE_COLUMNS, "converged"):
         if name in table.columns:
@@ -225,6 +235,7 @@ def extract_traces(
     threshold: float | None = None,
     method: str = "mle",
     progress: bool = False,
+    device: str = "auto",
 ) -> Traces:
     """Traces of every particle of every stack, pooled into one field.
 
@@ -250,6 +261,8 @@ def extract_traces(
         Fitting method passed to ``fit_rois``.
     progress : bool
         Show a progress bar over the stacks.
+    device : {"auto", "cpu", "cuda"}
+        Where the fits run (:func:`latentz.engine.resolve_device`).
     """
     from tqdm.auto import tqdm
 
@@ -288,7 +301,7 @@ def extract_traces(
         if found.shape[0] == 0:
             continue
         corners = _roi_corners(found, stack.shape[1:], roi_size)
-        parts.append(_fit_stack(stack, corners, roi_size, camera, method))
+        parts.append(_fit_stack(stack, corners, roi_size, camera, method, device))
         parts[-1]["x"] = parts[-1]["x"] + offsets[s, 0]
         parts[-1]["y"] = parts[-1]["y"] + offsets[s, 1]
         stack_index.append(np.full(found.shape[0], s))

@@ -1,4 +1,4 @@
-"""Widefield models: z(x', y'; s) and Δx', Δy'(x', y'; z) over the whole field (METHOD.md 15-20).
+"""Widefield models: z(x', y'; s) and Δx', Δy'(x', y'; z) over the whole field (Fig. 4).
 
 Each calibration particle gives z for a shape value s (its inverse function, inside its monotonic
 range) and Δx'(z), Δy'(z). A :class:`~latentz.calibration.fieldmodels.FieldModel` turns those values

@@ -480,7 +480,8 @@ def _finish(
             converged = False
     unit = vecs[2]
     col = vecs[1]
-    unit[:] = 0.0
+    for k in range(_NP):
+        unit[k] = 0.0
     if _cholesky(hess, lower):
         for k in range(_NP):
             unit[k] = 1.0
@@ -510,6 +511,65 @@ def _finish(
             else:
                 loglik -= m
     return loglik, chi2, iters, converged
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def fit_roi(
+    k,
+    rois,
+    start,
+    use_start,
+    lower_b,
+    upper_b,
+    method,
+    s2,
+    max_iter,
+    tol,
+    scratch,
+    vecs,
+    mats,
+    out_p,
+    out_e,
+    out_loglik,
+    out_chi2,
+    out_iter,
+    out_conv,
+):
+    """Fit ROI ``k`` of ``rois`` and write row ``k`` of the outputs (see `fit_batch`).
+
+    The CPU loop of `fit_batch` and the CUDA kernel (:mod:`._cuda`, one thread per ROI) both call
+    this function, with work buffers ``scratch`` (5, h*w), ``vecs`` (7, 7), ``mats`` (3, 7, 7).
+    """
+    roi = rois[k]
+    h, w = roi.shape
+    finite = True
+    for i in range(h):
+        for j in range(w):
+            if not math.isfinite(roi[i, j]):
+                finite = False
+    if not finite:
+        for m in range(_NP):
+            out_p[k, m] = np.nan
+            out_e[k, m] = np.nan
+        out_loglik[k] = np.nan
+        out_chi2[k] = np.nan
+        out_iter[k] = 0
+        out_conv[k] = False
+        return
+    first = vecs[6]
+    if use_start[k]:
+        for m in range(_NP):
+            first[m] = start[k, m]
+    else:
+        _start(roi, first)
+    loglik, chi2, iters, conv = _fit_one(
+        roi, first, lower_b, upper_b, method, s2, max_iter, tol, scratch, vecs, mats,
+        out_p[k], out_e[k],
+    )  # fmt: skip
+    out_loglik[k] = loglik
+    out_chi2[k] = chi2
+    out_iter[k] = iters
+    out_conv[k] = conv
 
 
 @numba.njit(parallel=True, cache=True)
@@ -543,44 +603,8 @@ def fit_batch(
         scratch = np.empty((5, h * w))
         vecs = np.empty((7, _NP))
         mats = np.empty((3, _NP, _NP))
-        first = vecs[6]
         for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            roi = rois[k]
-            finite = True
-            for i in range(h):
-                for j in range(w):
-                    if not math.isfinite(roi[i, j]):
-                        finite = False
-            if not finite:
-                for m in range(_NP):
-                    out_p[k, m] = np.nan
-                    out_e[k, m] = np.nan
-                out_loglik[k] = np.nan
-                out_chi2[k] = np.nan
-                out_iter[k] = 0
-                out_conv[k] = False
-                continue
-            if use_start[k]:
-                for m in range(_NP):
-                    first[m] = start[k, m]
-            else:
-                _start(roi, first)
-            loglik, chi2, iters, conv = _fit_one(
-                roi,
-                first,
-                lower_b,
-                upper_b,
-                method,
-                s2,
-                max_iter,
-                tol,
-                scratch,
-                vecs,
-                mats,
-                out_p[k],
-                out_e[k],
-            )
-            out_loglik[k] = loglik
-            out_chi2[k] = chi2
-            out_iter[k] = iters
-            out_conv[k] = conv
+            fit_roi(
+                k, rois, start, use_start, lower_b, upper_b, method, s2, max_iter, tol,
+                scratch, vecs, mats, out_p, out_e, out_loglik, out_chi2, out_iter, out_conv,
+            )  # fmt: skip

@@ -28,6 +28,7 @@ __all__ = [
     "icp",
     "IcpResult",
     "icp_motion",
+    "resolve_by_icp",
     "tracks_to_array",
     "MOTION_COLUMNS",
 ]
@@ -381,4 +382,100 @@ def icp_motion(
         n[t] = keep.sum()
     table = _motion_table(frames, rot, trans, rms, n, axis_tol, c)
     table["converged"] = converged
+    return table
+
+
+def _nearest_defined(rot: np.ndarray, t: int) -> RigidTransform:
+    """The transform of the defined transition nearest to ``t`` (identity if none is)."""
+    defined = np.flatnonzero(np.isfinite(rot).all(axis=(1, 2)))
+    if defined.size == 0:
+        return RigidTransform(np.eye(3), np.zeros(3))
+    return RigidTransform(rot[defined[np.argmin(np.abs(defined - t))]], np.zeros(3))
+
+
+def resolve_by_icp(
+    motion: pd.DataFrame,
+    locs: pd.DataFrame,
+    *,
+    max_distance_nm: float,
+    unlinked_distance_nm: float | None = None,
+    rms_factor: float = 3.0,
+    axis_tol: float = 1e-9,
+    max_iter: int = 100,
+) -> pd.DataFrame:
+    """Re-fit by ICP the transitions that linking left ambiguous.
+
+    A transition is ambiguous where fewer particles were linked across it than were localized in
+    both frames (a particle missed for longer than the linker's memory, a jump beyond its search
+    range, a spurious spot), or where its RMS residual exceeds ``rms_factor`` times the median
+    (a swap). ICP registers the two frames' localizations directly, starting from the linked
+    transform or, where fewer than 3 particles were linked, from the rotation of the nearest
+    linked transition; its result replaces the linked one when it converges and matches more
+    particles, or as many with a smaller RMS residual.
+
+    Parameters
+    ----------
+    motion : DataFrame
+        :func:`rigid_motion` of the linked tracks (its ``attrs["centre_nm"]`` is used).
+    locs : DataFrame
+        The localizations that were linked: frame, x_nm, y_nm, z_nm.
+    max_distance_nm : float
+        Pairs farther apart than this are not matched, starting from a linked transform (the
+        linker's search range).
+    unlinked_distance_nm : float, optional
+        The same, starting from the nearest linked rotation (default ``20 × max_distance_nm``,
+        as the linker's first cycle).
+    rms_factor : float
+        A transition whose 3D RMS residual exceeds this times the median is re-fitted.
+
+    Returns
+    -------
+    DataFrame
+        ``motion`` with the ambiguous transitions re-fitted and a column ``method``: "kabsch"
+        (linked tracks) or "icp".
+    """
+    check_columns("motion", motion, ("frame", "previous_frame", "n_particles"))
+    check_columns("locs", locs, ("frame", *POSITION_COLUMNS))
+    if "centre_nm" not in motion.attrs:
+        raise ValueError("`motion` has no attrs['centre_nm']: pass the table of rigid_motion.")
+    near = check_positive("max_distance_nm", max_distance_nm)
+    far = check_positive(
+        "unlinked_distance_nm", 20 * near if unlinked_distance_nm is None else unlinked_distance_nm
+    )
+    c = np.asarray(motion.attrs["centre_nm"], dtype=float)
+    groups = {f: g[list(POSITION_COLUMNS)].to_numpy(float) - c for f, g in locs.groupby("frame")}
+    frames = np.append(motion["previous_frame"].to_numpy(), motion["frame"].to_numpy()[-1:])
+    angles = motion[["gamma", "beta", "alpha"]].to_numpy(float)
+    rot = np.full((len(motion), 3, 3), np.nan)
+    good = np.isfinite(angles[:, :2]).all(1)
+    rot[good] = rotation_from_angles(*np.nan_to_num(angles[good]).T)
+    trans = motion[["dx_nm", "dy_nm", "dz_nm"]].to_numpy(float).copy()
+    rms = motion[["rms_x_nm", "rms_y_nm", "rms_z_nm"]].to_numpy(float).copy()
+    n = motion["n_particles"].to_numpy().copy()
+    method = np.full(len(motion), "kabsch", dtype=object)
+    rms3d = np.sqrt((rms**2).sum(1))
+    limit = check_positive("rms_factor", rms_factor) * np.nanmedian(rms3d)
+    swapped = rms3d > limit
+    empty = np.empty((0, 3))
+    for t, (f0, f1) in enumerate(zip(frames[:-1], frames[1:], strict=True)):
+        src, dst = groups.get(f0, empty), groups.get(f1, empty)
+        if min(len(src), len(dst)) < 3 or (n[t] >= min(len(src), len(dst)) and not swapped[t]):
+            continue
+        if n[t] >= 3 and good[t]:
+            init, reach = RigidTransform(rot[t], trans[t]), near
+        else:  # rotate as the nearest linked cycle did, then match the centroids
+            turn = _nearest_defined(rot, t).rotation
+            init, reach = RigidTransform(turn, dst.mean(0) - turn @ src.mean(0)), far
+        result = icp(src, dst, init=init, max_distance_nm=reach, max_iter=max_iter)
+        keep = result.matches >= 0
+        res = result.transform.residuals(src[keep], dst[result.matches[keep]])
+        icp_rms = np.sqrt((res**2).sum(1).mean()) if keep.any() else np.inf
+        # a fit no worse than the typical transition, with more pairs or a smaller residual
+        better = icp_rms <= limit and (keep.sum() > n[t] or icp_rms < rms3d[t])
+        if not result or not better:
+            continue
+        rot[t], trans[t] = result.transform.rotation, result.transform.translation_nm
+        rms[t], n[t], method[t] = np.sqrt((res**2).mean(0)), keep.sum(), "icp"
+    table = _motion_table(frames, rot, trans, rms, n, axis_tol, c)
+    table["method"] = method
     return table

@@ -18,7 +18,7 @@ from latentz.simulate.datasets import (
 )
 from latentz.simulate.figures import psf_gallery, save_psf_gallery
 from latentz.simulate.gear import GearMovie, gear_movie
-from latentz.simulate.optics import Optics, noll_to_nm, zernike
+from latentz.simulate.optics import Optics
 
 __all__ = [
     "AberrationMap",
@@ -31,12 +31,10 @@ __all__ = [
     "aperture_array",
     "calibration_dataset",
     "gear_movie",
-    "noll_to_nm",
     "psf_gallery",
     "render_spots",
     "save_psf_gallery",
     "stage_origins",
     "write_dataset",
     "write_files",
-    "zernike",
 ]

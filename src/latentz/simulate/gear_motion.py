@@ -33,7 +33,7 @@ Defaults are of the paper's order of magnitude: γ ≈ 2π/64 = 98.2 mrad per cy
 of tens of mrad (Table 1: 56.7 mrad), Δx and Δy ranges of about 2 × ``play_nm`` (Table 1: ~780 nm),
 mean β ≈ 9 mrad and an out-of-plane play of 9.4 mrad.
 
-The true motion follows the DESIGN conventions: positions centred on the centre of rotation (the
+The true motion follows docs/conventions.md: positions centred on the centre of rotation (the
 mean of all positions over all frames), ``p_i = R_i p_{i−1} + Δ_i``, and γ, β, α by eqs. 11–14.
 """
 

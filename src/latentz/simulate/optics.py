@@ -30,40 +30,9 @@ import scipy.fft
 
 from latentz._shared.validate import check_array, check_int, check_positive
 from latentz.simulate._kernels import mft_power
+from latentz.zernike import zernike_polar
 
-__all__ = ["Optics", "noll_to_nm", "zernike"]
-
-
-def noll_to_nm(j: int) -> tuple[int, int]:
-    """Radial order ``n`` and signed azimuthal frequency ``m`` of the Noll index ``j`` (>= 1).
-
-    ``m > 0`` is a cosine term, ``m < 0`` a sine term: j = 4 defocus, 5 oblique astigmatism
-    (sin 2θ), 6 vertical astigmatism (cos 2θ), 7 vertical coma (sin θ), 8 horizontal coma (cos θ),
-    11 primary spherical aberration.
-    """
-    j = check_int("noll index", j, minimum=1)
-    n, rest = 0, j - 1
-    while rest > n:
-        n += 1
-        rest -= n
-    m = (n % 2) + 2 * ((rest + ((n + 1) % 2)) // 2)
-    return n, (m if j % 2 == 0 or m == 0 else -m)
-
-
-def zernike(j: int, rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Noll-normalised Zernike polynomial ``Z_j(rho, theta)`` (unit RMS over the unit disk)."""
-    n, m = noll_to_nm(j)
-    am = abs(m)
-    radial = np.zeros_like(rho, dtype=np.float64)
-    for k in range((n - am) // 2 + 1):
-        coef = (-1) ** k * math.factorial(n - k)
-        coef /= math.factorial(k) * math.factorial((n + am) // 2 - k)
-        coef /= math.factorial((n - am) // 2 - k)
-        radial += coef * rho ** (n - 2 * k)
-    if m == 0:
-        return math.sqrt(n + 1) * radial
-    angular = np.cos(am * theta) if m > 0 else np.sin(am * theta)
-    return math.sqrt(2 * (n + 1)) * radial * angular
+__all__ = ["Optics"]
 
 
 def _sphere_transfer(freq: np.ndarray, radius_nm: float) -> np.ndarray:
@@ -187,9 +156,12 @@ class Optics:
         cache = self._basis_cache
         if modes not in cache:
             pupil = self._pupil
-            basis = np.array(
-                [zernike(j, pupil["rho"], pupil["theta"]) for j in modes], dtype=np.float64
-            ).reshape(len(modes), *pupil["rho"].shape)
+            if any(j < 1 for j in modes):
+                raise ValueError(f"Expected Noll indices >= 1, got {modes}.")
+            table = zernike_polar(
+                pupil["rho"].ravel(), pupil["theta"].ravel(), max(modes, default=1)
+            )
+            basis = table[:, [j - 1 for j in modes]].T.reshape(len(modes), *pupil["rho"].shape)
             cache[modes] = np.where(pupil["inside"][None], basis, 0.0)
         return cache[modes]
 
