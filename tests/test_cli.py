@@ -312,17 +312,12 @@ def test_distributed_scheduler_gives_the_same_table(run_dir, calibrated, tmp_pat
     pd.testing.assert_frame_equal(dist, local)
 
 
-def test_latentz_warnings_reach_the_console_as_one_line_without_source(capsys):
-    import warnings
-
+def test_warnings_reach_the_console_as_one_line_without_source(capsys):
     from latentz._shared.sanity import LatentzWarning
     from latentz.cli import _show_warning
 
-    _show_warning(
-        LatentzWarning("3 spot widths are far outside\nmore"), LatentzWarning, "/a/b.py", 7
-    )
-    err = capsys.readouterr().err
-    assert err == "latentz: warning: 3 spot widths are far outside\n"
-    with warnings.catch_warnings():  # other libraries' warnings keep Python's format
-        _show_warning(UserWarning("plain"), UserWarning, "/a/b.py", 7)
-    assert "/a/b.py:7: UserWarning: plain" in capsys.readouterr().err
+    message = LatentzWarning("3 spot widths are far outside\nmore")
+    _show_warning(message, LatentzWarning, "/a/b.py", 7)
+    assert capsys.readouterr().err == "latentz: warning: 3 spot widths are far outside\n"
+    _show_warning(RuntimeWarning("using the CPU"), RuntimeWarning, "/a/b.py", 7, line="src")
+    assert capsys.readouterr().err == "latentz: warning: RuntimeWarning: using the CPU\n"

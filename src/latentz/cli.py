@@ -20,15 +20,12 @@ EXIT_INTERNAL = 1
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """latentz's own warnings reach the user as one line, without file paths or source lines;
-    other libraries' warnings as Python prints them."""
+    """Warnings reach the user as one line, without file paths or source lines: latentz's own
+    (LatentzWarning) as they are, others with their category."""
     from latentz._shared.sanity import LatentzWarning
 
-    if issubclass(category, LatentzWarning):
-        click.echo(f"latentz: warning: {_first_line(message)}", err=True)
-    else:
-        text = warnings.formatwarning(message, category, filename, lineno, line)
-        (file or sys.stderr).write(text)
+    kind = "" if issubclass(category, LatentzWarning) else f"{category.__name__}: "
+    click.echo(f"latentz: warning: {kind}{_first_line(message)}", err=True)
 
 
 def _first_line(exc: BaseException) -> str:
