@@ -228,7 +228,7 @@ def figure_out_of_plane_play(result: OutOfPlanePlay, *, z_err_nm: float | None =
         ms=4,
         capsize=2,
     )
-    grid = np.linspace(0.0, table["distance_nm"].max() * 1.05, 2)
+    grid = np.linspace(table["distance_nm"].min(), table["distance_nm"].max(), 2)  # data only
     ax.plot(grid / 1e3, result.intercept_nm + result.slope_rad * grid, color="k")
     ax.set_xlabel("distance from centre of rotation (µm)")
     ax.set_ylabel("maximum z range (nm)")
