@@ -37,6 +37,11 @@ class _Group(click.Group):
     """A click group that turns expected errors into one line on stderr."""
 
     def invoke(self, ctx: click.Context):
+        with warnings.catch_warnings():  # restored after the command
+            warnings.showwarning = _show_warning
+            return self._invoke(ctx)
+
+    def _invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
@@ -59,7 +64,6 @@ class _Group(click.Group):
 @click.version_option(__version__, prog_name="latentz")
 def main() -> None:
     """latentz: accurate 3D localization microscopy by intrinsic aberration calibration."""
-    warnings.showwarning = _show_warning
 
 
 @main.command()
