@@ -23,7 +23,12 @@ def run(*args, **kwargs):
 
 def one_error_line(result, match):
     assert result.exit_code == 2, result.output
-    lines = [line for line in result.output.splitlines() if line.strip()]
+    # warnings are one line each of their own (e.g. the CPU fallback of device="auto")
+    lines = [
+        line
+        for line in result.output.splitlines()
+        if line.strip() and not line.startswith("latentz: warning: ")
+    ]
     assert len(lines) == 1, result.output
     assert lines[0].startswith("latentz: error:") and match in lines[0], lines[0]
     assert "Traceback" not in result.output
@@ -310,3 +315,14 @@ def test_distributed_scheduler_gives_the_same_table(run_dir, calibrated, tmp_pat
     dist, _ = read_table(tmp_path / "dist.parquet")
     local, _ = read_table(tmp_path / "local.parquet")
     pd.testing.assert_frame_equal(dist, local)
+
+
+def test_warnings_reach_the_console_as_one_line_without_source(capsys):
+    from latentz._shared.sanity import LatentzWarning
+    from latentz.cli import _show_warning
+
+    message = LatentzWarning("3 spot widths are far outside\nmore")
+    _show_warning(message, LatentzWarning, "/a/b.py", 7)
+    assert capsys.readouterr().err == "latentz: warning: 3 spot widths are far outside\n"
+    _show_warning(RuntimeWarning("using the CPU"), RuntimeWarning, "/a/b.py", 7, line="src")
+    assert capsys.readouterr().err == "latentz: warning: RuntimeWarning: using the CPU\n"

@@ -58,3 +58,23 @@ def test_report_opens_in_headless_chromium_with_every_image(tmp_path):
     ]
     path = write_report(sections, tmp_path / "report.html")
     assert images_loaded(path, tmp_path) == (3, 3)
+
+
+def test_sections_of_one_name_get_distinct_anchors_and_figure_files(tmp_path):
+    png = figure_png(_figure())
+    sections = [Section("Calibration", figures={"Fig. 3: σ_z": png}) for _ in range(2)]
+    page = write_report(sections, tmp_path / "r.html", png_dir=tmp_path / "figs").read_text()
+    assert page.count("href='#calibration'") == 1 and page.count("href='#calibration-2'") == 1
+    assert sorted(p.name for p in (tmp_path / "figs").glob("*.png")) == [
+        "calibration-2-fig-3-z.png",
+        "calibration-fig-3-z.png",
+    ]
+
+
+def test_a_table_column_has_one_number_format_and_a_dash_for_missing():
+    from latentz.report import table_html
+
+    page = table_html(pd.DataFrame({"x (µm)": [2020.0, 27.98], "drift": [np.nan, 0.5]}))
+    # one format per column: both to the same decimals (three digits of the typical value)
+    assert "<td>2020</td>" in page and "<td>28</td>" in page and "27.98" not in page
+    assert "—" in page and "NaN" not in page

@@ -21,6 +21,15 @@ EXIT_INTERNAL = 1
 EXIT_INTERRUPTED = 130
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings reach the user as one line, without file paths or source lines: latentz's own
+    (LatentzWarning) as they are, others with their category."""
+    from latentz._shared.sanity import LatentzWarning
+
+    kind = "" if issubclass(category, LatentzWarning) else f"{category.__name__}: "
+    click.echo(f"latentz: warning: {kind}{_first_line(message)}", err=True)
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
@@ -35,6 +44,11 @@ class _Group(click.Group):
     """A click group that turns expected errors into one line on stderr."""
 
     def invoke(self, ctx: click.Context):
+        with warnings.catch_warnings():  # restored after the command
+            warnings.showwarning = _show_warning
+            return self._invoke(ctx)
+
+    def _invoke(self, ctx: click.Context):
         try:
             formatwarning, warnings.formatwarning = warnings.formatwarning, _warning_line
             try:
@@ -492,7 +506,7 @@ def demo(out_dir: Path, quick: bool, seed: int, quiet: bool) -> None:
     """Simulate, calibrate, localize, track and report: the whole job on built-in data."""
     from latentz.demo import run_demo
 
-    summary = run_demo(out_dir, quick=quick, seed=seed, progress=not quiet)
+    summary = run_demo(out_dir, quick=quick, seed=seed, progress=_progress(quiet))
     for line in summary:
         click.echo(line)
 

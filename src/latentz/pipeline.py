@@ -318,12 +318,13 @@ def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
     from latentz.io import read_table
     from latentz.report import write_report
 
-    folder = Path(run_dir)
-    parts = []
+    folder = Path(run_dir).resolve()
+    quality, parts = [], []
     for path in sorted(folder.glob("*.h5")):
         cal = Calibration.load(path)
-        parts.append(sections.calibration_section(cal))
-        widefield = sections.widefield_section(cal)
+        quality.append(sections.quality_section(cal, name=path.name))
+        parts.append(sections.calibration_section(cal, name=path.name))
+        widefield = sections.widefield_section(cal, name=path.name)
         if widefield is not None:
             parts.append(widefield)
     for path in sorted(folder.glob("*.parquet")):
@@ -331,20 +332,23 @@ def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
             continue
         table, _ = read_table(path)
         if {"z_nm", "in_range", "x_err_nm"} <= set(table.columns):
-            parts.append(sections.localization_section(table))
+            parts.append(sections.localization_section(table, name=path.name))
     for path in sorted(folder.glob("*.tracks.parquet")):
         paths = motion_outputs(path.with_name(path.name.replace(".tracks.parquet", ".csv")))
         if not all(p.exists() for p in paths.values()):
             continue
         tracks = read_table(paths["tracks"])[0]
-        motion = read_table(paths["motion"])[0]
+        motion, meta = read_table(paths["motion"])
+        if (meta or {}).get("centre_of_rotation_nm"):
+            motion.attrs["centre_nm"] = meta["centre_of_rotation_nm"]
         unc = read_table(paths["uncertainty"])[0].set_index("dof")
         summary = read_table(paths["table1"])[0].set_index("dof")
-        parts.append(sections.motion_section(tracks, motion, unc, summary))
+        name = paths["motion"].name
+        parts.append(sections.motion_section(tracks, motion, unc, summary, name=name))
     if not parts:
         raise ValueError(f"{folder} holds no calibration, localization or motion files.")
     return write_report(
-        parts,
+        quality + parts,
         out,
         title=f"latentz report: {folder.name}",
         png_dir=Path(out).with_suffix("").with_name(Path(out).stem + "-figures"),

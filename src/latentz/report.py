@@ -13,21 +13,24 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from latentz._shared.atomic import write_bytes_atomic, write_text_atomic
 
-__all__ = ["Section", "figure_png", "save_figure", "write_report"]
+__all__ = ["Section", "figure_png", "mark_empty", "save_figure", "table_html", "write_report"]
 
 
 @dataclass(frozen=True)
 class Section:
-    """A titled part of a report: a paragraph, named figures (PNG bytes) and named tables."""
+    """A titled part of a report: paragraphs (separated by blank lines), named figures (PNG
+    bytes) with optional captions (what is shown and how to read it), and named tables."""
 
     title: str
     text: str = ""
     figures: dict[str, bytes] = field(default_factory=dict)
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
+    captions: dict[str, str] = field(default_factory=dict)
 
 
 def _png(fig, dpi: int) -> bytes:
@@ -45,6 +48,23 @@ def figure_png(fig, *, dpi: int = 110) -> bytes:
     return png
 
 
+def mark_empty(ax, text: str) -> None:
+    """Say in words why a panel has no data, instead of leaving an empty axis."""
+    ax.cla()
+    ax.set(xticks=[], yticks=[])
+    ax.text(
+        0.5,
+        0.5,
+        text,
+        ha="center",
+        va="center",
+        wrap=True,
+        fontsize=9,
+        color="0.3",
+        transform=ax.transAxes,
+    )
+
+
 def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> Path:
     """Save a matplotlib figure as a PNG file atomically (the figure stays open)."""
     target = Path(path)
@@ -55,7 +75,7 @@ def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> Path:
 _STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
 h1 { border-bottom: 2px solid #444; } h2 { margin-top: 2em; border-bottom: 1px solid #bbb; }
-figure { display: inline-block; margin: 0.5em; vertical-align: top; }
+figure { display: block; margin: 1em 0; }
 figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { font-size: 0.9em; color: #555; }
 table { border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }
@@ -66,7 +86,44 @@ nav a { margin-right: 1em; }
 
 
 def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
+    """An ASCII anchor and file name: letters and digits, single hyphens between words."""
+    words = "".join(c if c.isascii() and c.isalnum() else " " for c in text.lower()).split()
+    return "-".join(words) or "section"
+
+
+def _unique(slugs: list[str]) -> list[str]:
+    """The slugs, with ``-2``, ``-3`` … appended to repeats so every anchor is distinct."""
+    seen: dict[str, int] = {}
+    out = []
+    for slug in slugs:
+        seen[slug] = seen.get(slug, 0) + 1
+        out.append(slug if seen[slug] == 1 else f"{slug}-{seen[slug]}")
+    return out
+
+
+def _decimals(values: pd.Series) -> int:
+    """Decimals that show a column's typical magnitude to three significant digits (0–6)."""
+    finite = values[np.isfinite(values) & (values != 0)].abs()
+    if finite.empty:
+        return 0
+    return int(np.clip(2 - np.floor(np.log10(finite.median())), 0, 6))
+
+
+def _significant(v: float) -> str:
+    """Three significant digits, without exponents below 10⁵."""
+    return f"{v:.0f}" if 1e3 <= abs(v) < 1e5 else f"{v:.3g}"
+
+
+def table_html(table: pd.DataFrame) -> str:
+    """A table as HTML: one number format per column (no "2020" beside "27.98"), or three
+    significant digits per cell where a ``unit`` column says the rows differ in unit; integers
+    as integers, and an em dash for a missing value."""
+    floats = [c for c in table.columns if pd.api.types.is_float_dtype(table[c])]
+    if "unit" in table.columns:
+        formats = dict.fromkeys(floats, _significant)
+    else:
+        formats = {c: (lambda d: lambda v: f"{v:.{d}f}")(_decimals(table[c])) for c in floats}
+    return table.to_html(index=False, formatters=formats, na_rep="—")
 
 
 def write_report(
@@ -85,23 +142,27 @@ def write_report(
         f"<title>{html.escape(title)}</title><style>{_STYLE}</style></head><body>",
         f"<h1>{html.escape(title)}</h1><nav>",
     ]
-    parts += [f"<a href='#{_slug(s.title)}'>{html.escape(s.title)}</a>" for s in sections]
+    anchors = _unique([_slug(s.title) for s in sections])
+    parts += [
+        f"<a href='#{a}'>{html.escape(s.title)}</a>" for a, s in zip(anchors, sections, strict=True)
+    ]
     parts.append("</nav>")
-    for section in sections:
-        parts.append(f"<h2 id='{_slug(section.title)}'>{html.escape(section.title)}</h2>")
+    for anchor, section in zip(anchors, sections, strict=True):
+        parts.append(f"<h2 id='{anchor}'>{html.escape(section.title)}</h2>")
         if section.text:
             parts += [f"<p>{html.escape(p)}</p>" for p in section.text.split("\n\n")]
         for name, table in section.tables.items():
             parts.append(f"<h3>{html.escape(name)}</h3>")
-            parts.append(table.to_html(index=False, float_format=lambda v: f"{v:.4g}"))
+            parts.append(table_html(table))
         for name, png in section.figures.items():
             data = base64.b64encode(png).decode("ascii")
             parts.append(
                 f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{data}'>"
-                f"<figcaption>{html.escape(name)}</figcaption></figure>"
+                f"<figcaption><b>{html.escape(name)}.</b> "
+                f"{html.escape(section.captions.get(name, ''))}</figcaption></figure>"
             )
             if png_dir is not None:
-                write_bytes_atomic(Path(png_dir) / f"{_slug(section.title)}-{_slug(name)}.png", png)
+                write_bytes_atomic(Path(png_dir) / f"{anchor}-{_slug(name)}.png", png)
     parts.append("</body></html>")
     target = Path(path)
     write_text_atomic(target, "\n".join(parts))

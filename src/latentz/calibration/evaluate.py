@@ -18,6 +18,7 @@ import pandas as pd
 from latentz.calibration.calibration import FIELD_MODELS, Calibration
 from latentz.calibration.fieldmodels import FieldModel, field_errors
 from latentz.calibration.widefield import MIN_PARTICLES, covered_span
+from latentz.report import mark_empty
 
 __all__ = ["evaluate", "evaluate_figures", "crossval_report"]
 
@@ -106,7 +107,10 @@ def evaluate_figures(cal: Calibration) -> dict[str, Any]:
             for kind, group in rows.sort_values("z_nm").groupby("model"):
                 ax.plot(group["z_nm"], group[f"rms_{region}"], label=kind)
             ax.set(title=f"{axis}, {region} field", ylabel="RMS error (nm)")
-            ax.set_yscale("log")
+            if ax.get_lines():
+                ax.set_yscale("log")
+            else:
+                mark_empty(ax, f"no {axis} errors in the {region} field")
         axes[1, col].set_xlabel("z (nm)")
     axes[0, 0].legend()
     fig5.suptitle("Widefield errors (Zernike: fit residuals; interpolants: leave-one-out)")
@@ -119,18 +123,20 @@ def evaluate_figures(cal: Calibration) -> dict[str, Any]:
     dx1, dy1 = cal.local_delta(hi)
     px = cal.camera.pixel_size_nm
     fig4, (a, b) = plt.subplots(1, 2, figsize=(12, 5.2))
-    q = a.quiver(x, y, (dx1 - dx0)[kept] * px, (dy1 - dy0)[kept] * px, angles="xy")
-    a.quiverkey(q, 0.88, -0.12, 50, "50 nm", coordinates="axes")
+    um = px / 1000  # field positions in µm, like the neighbouring maps
+    q = a.quiver(x * um, y * um, (dx1 - dx0)[kept] * px, (dy1 - dy0)[kept] * px, angles="xy")
+    # the key inside the map's frame, lower right
+    a.quiverkey(q, 0.8, 0.04, 50, "50 nm", coordinates="axes", labelpos="W")
     a.set(
-        title=f"apparent lateral motion from z = {lo:.0f} to {hi:.0f} nm",
-        xlabel="x (px)",
-        ylabel="y (px)",
+        title=f"(a) apparent lateral motion from z = {lo:.0f} to {hi:.0f} nm",
+        xlabel="x (µm)",
+        ylabel="y (µm)",
         aspect="equal",
     )
     a.invert_yaxis()
-    sc = b.scatter(x, y, c=cal.local.z_f[kept], cmap="viridis", s=12)
+    sc = b.scatter(x * um, y * um, c=cal.local.z_f[kept], cmap="viridis", s=12)
     fig4.colorbar(sc, ax=b, label="z of best focus after tilt removal (nm)")
-    b.set(title="field curvature", xlabel="x (px)", aspect="equal")
+    b.set(title="(b) field curvature", xlabel="x (µm)", ylabel="y (µm)", aspect="equal")
     b.invert_yaxis()
     fig4.tight_layout()
     return {
@@ -163,11 +169,14 @@ def _figure_error_distributions(cal: Calibration, errors: pd.DataFrame, residual
             per_particle = np.sqrt(np.nanmean(residuals[kind, "z"] ** 2, axis=1))
         ax = axes[row, 0]
         shown = np.isfinite(per_particle)
-        sc = ax.scatter(x[shown] * px, y[shown] * px, c=per_particle[shown], s=10, cmap="magma")
-        fig.colorbar(sc, ax=ax, label="RMS z error (nm)")
-        ax.set(title=f"{kind}: z error per particle", xlabel="x (µm)", ylabel="y (µm)")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.invert_yaxis()
+        if shown.any():
+            sc = ax.scatter(x[shown] * px, y[shown] * px, c=per_particle[shown], s=10, cmap="magma")
+            fig.colorbar(sc, ax=ax, label="RMS z error (nm)")
+            ax.set(title=f"{kind}: z error per particle", xlabel="x (µm)", ylabel="y (µm)")
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.invert_yaxis()
+        else:
+            mark_empty(ax, f"{kind}: no particle could be predicted\nfrom the others")
         for col, axis in enumerate("xyz", start=1):
             ax = axes[row, col]
             resid = residuals[kind, axis]
@@ -188,8 +197,13 @@ def _figure_error_distributions(cal: Calibration, errors: pd.DataFrame, residual
                     density=True,
                     label=f"{region}: kurtosis {per_column.mean():+.2f} ± {spread:.2f}",
                 )
-            ax.set(title=f"{kind}: {axis} errors", xlabel=f"{axis} error (nm)")
-            ax.legend(fontsize=8)
+            ax.set(
+                title=f"{kind}: {axis} errors", xlabel=f"{axis} error (nm)", ylabel="density (1/nm)"
+            )
+            if ax.patches:
+                ax.legend(fontsize=8)
+            else:
+                mark_empty(ax, f"{kind}: too few {axis} errors\nfor a histogram")
     fig.suptitle("Widefield errors (Zernike: fit residuals; interpolants: leave-one-out)")
     fig.tight_layout()
     return fig

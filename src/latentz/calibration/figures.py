@@ -11,10 +11,11 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from latentz._shared.validate import check_int
 from latentz.calibration.calibration import PAPER_SHAPES, Calibration
-from latentz.report import save_figure
+from latentz.report import mark_empty, save_figure
 
 __all__ = ["figure2", "figure3", "figure_focus", "figure_shape_zero"]
 
@@ -70,25 +71,31 @@ def figure2(
         squeeze=False,
     )
     ax = axes[0, 0]
-    sc = ax.scatter(tr["x"][p] * px, tr["y"][p] * px, c=z, s=10, cmap="viridis")
     x0, y0 = (m[p : p + 1](np.array([zf]))[0] for m in (_abs_model(cal, "x"), _abs_model(cal, "y")))
-    ax.plot(x0 * px, y0 * px, "o", mfc="white", mec="k", ms=8)
-    ax.set(xlabel="x' (nm)", ylabel="y' (nm)", title=f"(a) particle {p}")
+    # positions relative to the particle's position at z_f, so no axis needs an offset
+    sc = ax.scatter((tr["x"][p] - x0) * px, (tr["y"][p] - y0) * px, c=z, s=10, cmap="viridis")
+    ax.plot(0.0, 0.0, "o", mfc="white", mec="k", ms=8)
+    ax.set(
+        xlabel="x' − x'(z_f) (nm)",
+        ylabel="y' − y'(z_f) (nm)",
+        title=f"(a) particle {p} at ({x0 * px / 1e3:.1f}, {y0 * px / 1e3:.1f}) µm",
+    )
     ax.set_aspect("equal", adjustable="datalim")
-    fig.colorbar(sc, ax=ax, label="z (nm)")
+    bar = fig.colorbar(sc, ax=ax, location="bottom", pad=0.2)
+    bar.set_label("z (nm)")
     for row in (1, 2):
         axes[row, 0].axis("off")
 
     panels = [
         (
-            "(b) Δx' (nm)",
+            "(b) Δx'",
             (tr["x"][p] - _abs_model(cal, "x")[p : p + 1](np.array([zf]))[0]) * px,
             local.dx[p : p + 1](zz[None])[0] * px,
             local.sigma_dx[p] * px,
             "σ_Δx' (nm)",
         ),
         (
-            "(c) Δy' (nm)",
+            "(c) Δy'",
             (tr["y"][p] - _abs_model(cal, "y")[p : p + 1](np.array([zf]))[0]) * px,
             local.dy[p : p + 1](zz[None])[0] * px,
             local.sigma_dy[p] * px,
@@ -98,11 +105,16 @@ def figure2(
     for col, (title, data, curve, sigma, slabel) in enumerate(panels, start=1):
         top, mid, bottom = axes[0, col], axes[1, col], axes[2, col]
         top.plot(z, data, "k.", ms=3)
-        top.plot(zz, curve, "g-", lw=1.5)
+        # the model only over the z its data cover, on the data's scale
+        seen = np.isfinite(data)
+        span = (zz >= np.min(z[seen])) & (zz <= np.max(z[seen])) if seen.any() else zz < -np.inf
+        top.plot(zz[span], curve[span], "g-", lw=1.5)
+        _limit_to(top, data)
         top.set_title(title)
+        top.set_ylabel(f"{title[4:]} (nm)")
         model = local.dx if col == 1 else local.dy
         mid.plot(z, data - model[p : p + 1](z[None])[0] * px, "k.", ms=2)
-        mid.set_ylabel("residual")
+        mid.set_ylabel("residual (nm)")
         bottom.plot(z, sigma, "b-")
         bottom.set(xlabel="z (nm)", ylabel=slabel)
 
@@ -114,9 +126,10 @@ def figure2(
     top.plot(za, local.amplitude[p : p + 1](za[None])[0], "g-", lw=1.5)
     top.axvline(zf, color="r", lw=1)
     top.set_title(f"(d) A, z_f = {zf:.0f} nm")
+    top.set_ylabel("peak amplitude A (photoelectrons / px)")
     inside = (z >= dom[0]) & (z <= dom[1])
     mid.plot(z[inside], (amp - local.amplitude[p : p + 1](z[None])[0])[inside], "k.", ms=2)
-    mid.set_ylabel("residual")
+    mid.set_ylabel("residual (e⁻ / px)")
     bottom.axis("off")
 
     for col, shape in enumerate(shapes, start=4):
@@ -125,20 +138,44 @@ def figure2(
         values = model.values[p]
         top.plot(z, values, "k.", ms=3)
         lo, hi = model.inverse.domain[p]
-        if model.inverse.valid[p]:
-            ss = np.linspace(lo, hi, 300)
-            top.plot(model.inverse[p : p + 1](ss[None])[0], ss, "g-", lw=1.5)
-            res = z - model.inverse[p : p + 1](values[None])[0]
-            mid.plot(z, np.where(np.isfinite(model.sigma_z[p]), res, np.nan), "k.", ms=2)
-        top.set_title(f"({chr(ord('e') + col - 4)}) {_LABELS[shape]}")
+        used = " — used" if shape == cal.shape else ""
+        top.set_title(f"({chr(ord('e') + col - 4)}) {_LABELS[shape]}{used}")
+        top.set_ylabel(f"{_LABELS[shape]} (dimensionless)")
+        finite_sigma = np.isfinite(model.sigma_z[p])
+        if not (model.inverse.valid[p] and finite_sigma.any()):
+            reason = f"{_LABELS[shape]} has no monotonic range\nfor this particle: no z from it"
+            mark_empty(mid, reason)
+            mark_empty(bottom, "no σ_z: see above")
+            continue
+        ss = np.linspace(lo, hi, 300)
+        zs = model.inverse[p : p + 1](ss[None])[0]
+        # the inverse model only where it maps into the z this particle was imaged over
+        shown = (zs >= np.nanmin(z)) & (zs <= np.nanmax(z))
+        top.plot(np.where(shown, zs, np.nan), ss, "g-", lw=1.5)
+        _limit_to(top, values)
+        res = z - model.inverse[p : p + 1](values[None])[0]
+        mid.plot(z, np.where(finite_sigma, res, np.nan), "k.", ms=2)
         mid.set_ylabel("z residual (nm)")
         bottom.plot(z, model.sigma_z[p], "b-")
         bottom.set(xlabel="z (nm)", ylabel="σ_z (nm)")
     for col in range(1, cols + 1):
         axes[0, col].set_xlabel("z (nm)")
+    for ax in axes[:, 1:].flat:  # a few z ticks, so that none overlap (not on worded panels)
+        if not ax.texts:
+            ax.xaxis.set_major_locator(MaxNLocator(4))
     fig.tight_layout()
     _save(fig, path)
     return fig
+
+
+def _limit_to(ax: Any, data: np.ndarray) -> None:
+    """y limits that hold the data (with a margin), whatever a model drawn beside it does."""
+    finite = np.asarray(data, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size:
+        lo, hi = finite.min(), finite.max()
+        margin = 0.08 * (hi - lo) or 1.0
+        ax.set_ylim(lo - margin, hi + margin)
 
 
 def _abs_model(cal: Calibration, axis: str):
@@ -175,7 +212,14 @@ def figure3(
 
     shape = shape or cal.shape
     kept = ~cal.culled
-    ranges = np.arange(1000.0, 6001.0, 500.0) if ranges_nm is None else np.asarray(ranges_nm)
+    # the axial ranges this calibration can speak for: no wider than its particles' z span
+    span = float(np.nanmedian(np.diff(cal.z_span_nm[kept], axis=1))) if kept.any() else 0.0
+    range_nm = min(range_nm, np.floor(0.9 * span / 100.0) * 100.0) if span > 0 else range_nm
+    if ranges_nm is None:
+        step = 500.0 if span >= 2000 else 100.0
+        ranges = np.arange(step * 2, max(range_nm, 2 * step) + 1, step)
+    else:
+        ranges = np.asarray(ranges_nm)
     sigma = cal.mean_sigma_z(shape, range_nm)
     fig, axes = plt.subplots(1, 5, figsize=(22, 4.2))
     ax = axes[0]
@@ -184,30 +228,47 @@ def figure3(
     show = [i for i in order if kept[i] and model.valid[i]]
     for i in show[:: max(1, len(show) // 60)]:
         ss = np.linspace(*model.domain[i], 100)
-        ax.plot(ss, model[i : i + 1](ss[None])[0], lw=0.6, color="0.6")
+        zs = model[i : i + 1](ss[None])[0]
+        # each curve only where it maps into the z its particle was imaged over
+        lo, hi = cal.z_span_nm[i]
+        ax.plot(ss, np.where((zs >= lo) & (zs <= hi), zs, np.nan), lw=0.6, color="0.6")
     ax.set(xlabel=_LABELS.get(shape, shape), ylabel="z (nm)", title=f"(a) z({_LABELS[shape]})")
+    if not show:
+        mark_empty(ax, f"no kept particle has a monotonic\nrange of {_LABELS[shape]}")
     ax = axes[1]
     pos = cal.positions * cal.camera.pixel_size_nm / 1000
-    sc = ax.scatter(pos[kept, 0], pos[kept, 1], c=sigma[kept], s=12, cmap="magma")
-    ax.set(xlabel="x (µm)", ylabel="y (µm)", title=f"(b) mean σ_z over {range_nm / 1000:g} µm")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.invert_yaxis()
-    fig.colorbar(sc, ax=ax, label="σ_z (nm)")
-    ax = axes[2]
-    finite = sigma[kept & np.isfinite(sigma)]
-    ax.hist(finite, bins=30, color="0.4")
-    ax.set(xlabel="mean σ_z (nm)", ylabel="particles", title=f"(c) n = {finite.size}")
+    have = kept & np.isfinite(sigma)
+    title = f"mean σ_z over {range_nm / 1000:g} µm"
+    if have.any():
+        sc = ax.scatter(pos[have, 0], pos[have, 1], c=sigma[have], s=12, cmap="magma")
+        ax.set(xlabel="x (µm)", ylabel="y (µm)", title=f"(b) {title}")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.invert_yaxis()
+        fig.colorbar(sc, ax=ax, label="σ_z (nm)")
+        axes[2].hist(sigma[have], bins=30, color="0.4")
+        axes[2].set(xlabel="mean σ_z (nm)", ylabel="particles", title=f"(c) n = {have.sum()}")
+    else:
+        empty = f"no kept particle has {_LABELS[shape]}\nmonotonic over {range_nm / 1000:g} µm"
+        mark_empty(ax, f"(b) {title}:\n{empty}")
+        mark_empty(axes[2], f"(c) histogram of {title}:\n{empty}")
     for name in dict.fromkeys((*PAPER_SHAPES, shape)):
         per_range = [cal.mean_sigma_z(name, r)[kept] for r in ranges]
         means = [np.nanmean(v) if np.isfinite(v).any() else np.nan for v in per_range]
         spread = [interpercentile(v) for v in per_range]
         axes[3].plot(ranges / 1000, means, marker=_MARKERS[name], label=_LABELS[name])
         axes[4].plot(ranges / 1000, spread, marker=_MARKERS[name], label=_LABELS[name])
-    axes[3].set(xlabel="axial range (µm)", ylabel="mean σ_z (nm)", title="(d)", yscale="log")
-    axes[4].set(
-        xlabel="axial range (µm)", ylabel="68 % range of σ_z (nm)", title="(e)", yscale="log"
-    )
-    axes[3].legend()
+    for ax, label, title in (
+        (axes[3], "mean σ_z (nm)", "(d) mean σ_z"),
+        (axes[4], "68 % range of σ_z (nm)", "(e) spread of σ_z"),
+    ):
+        ax.set(xlabel="axial range (µm)", ylabel=label, title=title)
+        values = np.concatenate([line.get_ydata() for line in ax.get_lines()])
+        if np.any(np.asarray(values, dtype=float) > 0):
+            ax.set_yscale("log")
+        else:
+            mark_empty(ax, f"{title}: no particle has a\nmonotonic range over these ranges")
+    if axes[3].get_lines():
+        axes[3].legend(fontsize=8)
     fig.tight_layout()
     _save(fig, path)
     return fig

@@ -10,11 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from latentz.motion import analyses
 from latentz.motion.analyses import OutOfPlanePlay
 from latentz.motion.uncertainty import representative_simulation
-from latentz.report import save_figure
+from latentz.report import mark_empty, save_figure
 
 __all__ = [
     "motion_figures",
@@ -43,7 +44,8 @@ _LABELS = {
 def _series_with_histogram(fig, gs, row, col, x, y, label, sigma=None):
     ax = fig.add_subplot(gs[row, 2 * col])
     hist = fig.add_subplot(gs[row, 2 * col + 1], sharey=ax)
-    ax.plot(x, y, ".", ms=2, color="tab:blue")
+    ax.plot(x, y, ".", ms=2 if len(x) > 100 else 5, color="tab:blue")
+    hist.set_xlabel("count")
     finite = y[np.isfinite(y)]
     if finite.size:
         hist.hist(finite, bins=40, orientation="horizontal", color="tab:blue")
@@ -111,9 +113,11 @@ def figure_centroid(centroids: pd.DataFrame) -> Figure:
         cmap="twilight",
         s=4,
     )
-    ax.set_xlabel("x (µm)")
-    ax.set_ylabel("y (µm)")
-    ax.set_zlabel("z (nm)")
+    ax.set_xlabel("x (µm)", labelpad=12)
+    ax.set_ylabel("y (µm)", labelpad=12)
+    ax.set_zlabel("z (nm)", labelpad=12)
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):  # few ticks, so none overlap
+        axis.set_major_locator(MaxNLocator(4))
     fig.colorbar(art, ax=ax, shrink=0.6, label="nominal orientation")
     return fig
 
@@ -122,6 +126,15 @@ def figure_play(ranges: pd.DataFrame) -> Figure:
     """Radial and axial range of the centroid at each nominal orientation, polar (Fig. 7)."""
     fig = Figure(figsize=(10, 4.8), layout="constrained")
     width = 2 * np.pi / max(len(ranges), 1) * 0.8
+    if not (ranges["n_visits"] >= 2).any():
+        fig.set_size_inches(10, 1.4)
+        mark_empty(
+            fig.add_subplot(),
+            "No nominal orientation was visited twice (the record is shorter than one "
+            "revolution),\nso the play, the range of the centroid over revisits, "
+            "cannot be measured.",
+        )
+        return fig
     for k, (column, title) in enumerate(
         [("radial_range_nm", "radial range (nm)"), ("axial_range_nm", "axial range (nm)")]
     ):
@@ -144,9 +157,10 @@ def figure_flexure(
     particle for the scatter plot; otherwise the per-particle correlations are shown."""
     fig = Figure(figsize=(12, 7), layout="constrained")
     ax = fig.add_subplot(2, 2, 1)
-    ax.plot(planar["frame"], planar["res_z_nm"], ".", ms=1, alpha=0.4)
+    ax.plot(planar["frame"], planar["res_z_nm"], ".", ms=1 if len(planar) > 1000 else 3, alpha=0.5)
     ax.set_xlabel("motion cycle")
     ax.set_ylabel("planar residual z (nm)")
+    ax.set_title("(a) z residuals of a plane fitted to each frame", fontsize=10)
     ax = fig.add_subplot(2, 2, 2)
     if pair is not None:
         x, y = pair
@@ -158,12 +172,17 @@ def figure_flexure(
         ax.set_xlabel("planar residual z (nm)")
         ax.set_ylabel("rigid residual z (nm)")
     else:
-        ax.bar(correlation["particle"].astype(str), correlation["correlation"])
-        ax.set_xlabel("particle")
-        ax.set_ylabel("correlation, rigid vs planar")
-        ax.tick_params(axis="x", labelsize=6)
+        # particles by position along the axis; at most ~20 tick labels so none overlap
+        index = np.arange(len(correlation))
+        ax.bar(index, correlation["correlation"])
+        ticks = index[:: max(1, int(np.ceil(len(index) / 20)))]
+        ax.set_xticks(ticks, correlation["particle"].astype(str).to_numpy()[ticks], fontsize=7)
+        ax.set_xlabel("particle (track id)")
+        ax.set_ylabel("correlation, rigid vs planar z residuals")
     r = correlation["correlation"]
-    ax.set_title(f"mean correlation {r.mean():.2f} ± {r.std():.2f}", fontsize=10)
+    ax.set_title(f"(b) mean correlation {r.mean():.2f} ± {r.std():.2f}", fontsize=10)
+    # a peak is a period only if the record holds at least two of them
+    record = float(planar["frame"].max() - planar["frame"].min() + 1) if len(planar) else 0.0
     for k, (lo, hi) in enumerate([(0.0, 0.05), (0.05, 0.5)]):
         ax = fig.add_subplot(2, 2, 3 + k)
         for spectrum, label, color in (
@@ -171,26 +190,28 @@ def figure_flexure(
             (rigid_spectrum, "rigid", "tab:purple"),
         ):
             sel = (spectrum["frequency"] >= lo) & (spectrum["frequency"] <= hi)
+            if not sel.any():
+                continue
+            resolved = sel & (spectrum["period_cycles"] <= record / 2)
+            peak = spectrum.loc[resolved].nlargest(1, "amplitude")
+            key = label
+            if len(peak):
+                key += f": peak at {float(peak['period_cycles'].iloc[0]):.1f} cycles"
+                ax.plot(peak["frequency"], peak["amplitude"], "v", color=color, ms=6)
             ax.plot(
                 spectrum.loc[sel, "frequency"],
                 spectrum.loc[sel, "amplitude"],
                 color=color,
                 lw=0.8,
-                label=label,
+                label=key,
             )
-            peak = spectrum.loc[sel].nlargest(1, "amplitude")
-            if len(peak):
-                ax.annotate(
-                    f"{float(peak['period_cycles'].iloc[0]):.1f} cycles",
-                    (float(peak["frequency"].iloc[0]), float(peak["amplitude"].iloc[0])),
-                    fontsize=8,
-                    color=color,
-                    xytext=(4, 4),
-                    textcoords="offset points",
-                )
+        ax.set_title(f"({'cd'[k]}) spectrum, {lo:g}–{hi:g} per cycle", fontsize=10)
         ax.set_xlabel("frequency (per motion cycle)")
         ax.set_ylabel("amplitude of RMS z residual (nm)")
-        ax.legend(fontsize=8)
+        if ax.get_lines():
+            ax.legend(fontsize=8, title=f"periods up to {record / 2:.0f} cycles", title_fontsize=8)
+        else:
+            mark_empty(ax, f"the record ({record:.0f} cycles) is too short\nfor these frequencies")
     return fig
 
 
@@ -207,7 +228,7 @@ def figure_out_of_plane_play(result: OutOfPlanePlay, *, z_err_nm: float | None =
         ms=4,
         capsize=2,
     )
-    grid = np.linspace(0.0, table["distance_nm"].max() * 1.05, 2)
+    grid = np.linspace(table["distance_nm"].min(), table["distance_nm"].max(), 2)  # data only
     ax.plot(grid / 1e3, result.intercept_nm + result.slope_rad * grid, color="k")
     ax.set_xlabel("distance from centre of rotation (µm)")
     ax.set_ylabel("maximum z range (nm)")

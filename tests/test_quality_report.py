@@ -1,0 +1,26 @@
+"""The calibration-quality section: reported uncertainty against actual error."""
+
+import numpy as np
+import pandas as pd
+
+from latentz.quality_report import coverage_table
+
+
+def test_coverage_of_honest_and_of_overconfident_uncertainties():
+    rng = np.random.default_rng(0)
+    sigma = rng.uniform(1.0, 3.0, 20000)
+    errors = pd.DataFrame(
+        {
+            "err_x_nm": 50.0 + rng.normal(0.0, sigma),  # a global offset is not an error
+            "x_err_nm": sigma,
+            "err_z_nm": rng.normal(0.0, 4 * sigma),
+            "z_err_nm": sigma,  # four times too small
+        }
+    )
+    table = coverage_table(errors, source="truth").set_index("axis")
+    assert list(table.index) == ["x", "z"]
+    # 20000 normal errors: 68.3 % ± 0.3 % (1 standard deviation) within 1σ
+    assert abs(table.loc["x", "within 1σ (%)"] - 68.3) < 1.5
+    # P(|N(0, 16)| <= 1) = 19.7 %
+    assert abs(table.loc["z", "within 1σ (%)"] - 19.7) < 1.5
+    assert table.loc["z", "RMS error / median σ"] > 3.5
