@@ -160,15 +160,19 @@ def make_data(
     background: float = 2.0,
     bead_nm: float = 100.0,
     test_photons: tuple[float, float] = (1e3, 1e4),
+    n_frames: int | None = None,
 ) -> ValidationData:
     """Simulate one study of the given :data:`SIZES` entry (``seed`` fixes everything).
 
     Test emitters have log-uniform photon counts in ``test_photons`` and a uniform defocus
-    within the size's ``test_half_nm`` in every frame.
+    within the size's ``test_half_nm`` in every frame; ``n_frames`` test frames (default: the
+    size's).
     """
     if size not in SIZES:
         raise ValueError(f"Expected `size` to be one of {tuple(SIZES)}, got {size!r}.")
-    p = SIZES[size]
+    if n_frames is not None and n_frames < 1:
+        raise ValueError(f"Expected `n_frames` >= 1, got {n_frames}.")
+    p = SIZES[size] if n_frames is None else {**SIZES[size], "n_frames": int(n_frames)}
     rng = np.random.default_rng(seed)
     microscope = Microscope() if microscope is None else microscope
     n = p["field_px"]
