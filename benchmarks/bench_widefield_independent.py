@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import pickle
+import sys
 import time
 import warnings
 from dataclasses import replace
@@ -236,12 +237,12 @@ def main() -> None:
     OUT.mkdir(exist_ok=True)
     header = (
         "# Widefield accuracy on the independent validation microscope\n\n"
-        f"`python benchmarks/bench_widefield_independent.py --size {args.size}` "
+        f"`python benchmarks/bench_widefield_independent.py {' '.join(sys.argv[1:])}` "
         f"(data and truth: {made:.0f} s; total {time.perf_counter() - start:.0f} s on a shared "
         f"machine). {len(spots)} test spots of "
         f"{data.test_truth['emitter'].nunique()} point emitters; "
         f"{len(data.calibration_truth)} calibration beads; test emitters of "
-        f"{test_photons[0]:.0e}-{test_photons[1]:.0e} photons. RMSE in nm after one global offset "
+        f"{test_photons[0]:g}-{test_photons[1]:g} photons. RMSE in nm after one global offset "
         "per axis; `xy a-b`: lateral RMSE (x and y pooled) for a <= |true z| < b µm; `cov`: "
         "fraction of errors within the reported 1σ.\n\n"
     )
