@@ -85,3 +85,10 @@ def test_small_study_images_and_truth():
     expected = data.expected[0].sum()
     adu = (data.stacks[0] - data.camera.offset).sum() * data.camera.gain
     assert adu == pytest.approx(expected, rel=1e-3)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [({"size": "huge"}, "size"),
+                                               ({"n_frames": 0}, "n_frames")])  # fmt: skip
+def test_make_data_refuses_bad_input_before_work(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        make_data(**kwargs)

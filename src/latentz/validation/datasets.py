@@ -24,7 +24,7 @@ from latentz.camera import Camera
 from latentz.validation.fields import AberrationFields
 from latentz.validation.microscope import Microscope, bead_slices
 
-__all__ = ["SIZES", "ValidationData", "make_data", "render_patches"]
+__all__ = ["SIZES", "ValidationData", "make_data", "render_patches", "emitter_images"]
 
 #: The study sizes: "full" is issue 12's microscope, "small" runs in seconds for the tests.
 SIZES = {
@@ -145,6 +145,27 @@ def _add(frame: np.ndarray, patch: np.ndarray, x_px: float, y_px: float) -> None
     frame[..., rs, cs] += patch[..., rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
 
 
+def emitter_images(
+    microscope: Microscope,
+    fields: AberrationFields,
+    test_truth: pd.DataFrame,
+    frame_shape: tuple[int, int],
+    background: float,
+    patch_px: int,
+) -> np.ndarray:
+    """(n_frames, H, W) expected photons of the test frames without noise: every emitter of
+    ``test_truth`` (rows in frame order per emitter) with its ``photons`` and ``defocus_nm``."""
+    n_frames = int(test_truth["frame"].max()) + 1
+    expected = np.full((n_frames, *frame_shape), float(background))
+    for _, rows in test_truth.groupby("emitter", sort=True):
+        x, y = float(rows["x"].iloc[0]), float(rows["y"].iloc[0])
+        patch = render_patches(microscope, fields, x, y, rows["defocus_nm"].to_numpy(), patch_px)
+        block = np.zeros((n_frames, *patch.shape[1:]))
+        block[rows["frame"].to_numpy()] = rows["photons"].to_numpy()[:, None, None] * patch
+        _add(expected, block, x, y)
+    return expected
+
+
 def _to_adu(photons: np.ndarray, camera: Camera, rng) -> np.ndarray:
     electrons = rng.poisson(photons) + rng.normal(0.0, camera.readnoise, photons.shape)
     return electrons / camera.gain + camera.offset
@@ -160,15 +181,19 @@ def make_data(
     background: float = 2.0,
     bead_nm: float = 100.0,
     test_photons: tuple[float, float] = (1e3, 1e4),
+    n_frames: int | None = None,
 ) -> ValidationData:
     """Simulate one study of the given :data:`SIZES` entry (``seed`` fixes everything).
 
     Test emitters have log-uniform photon counts in ``test_photons`` and a uniform defocus
-    within the size's ``test_half_nm`` in every frame.
+    within the size's ``test_half_nm`` in every frame; ``n_frames`` test frames (default: the
+    size's).
     """
     if size not in SIZES:
         raise ValueError(f"Expected `size` to be one of {tuple(SIZES)}, got {size!r}.")
-    p = SIZES[size]
+    if n_frames is not None and n_frames < 1:
+        raise ValueError(f"Expected `n_frames` >= 1, got {n_frames}.")
+    p = SIZES[size] if n_frames is None else {**SIZES[size], "n_frames": int(n_frames)}
     rng = np.random.default_rng(seed)
     microscope = Microscope() if microscope is None else microscope
     n = p["field_px"]
@@ -199,15 +224,11 @@ def make_data(
     lo, hi = np.log(test_photons[0]), np.log(test_photons[1])
     photons = np.exp(rng.uniform(lo, hi, len(points)))
     defocus = rng.uniform(-p["test_half_nm"], p["test_half_nm"], (len(points), p["n_frames"]))
-    expected = np.full((p["n_frames"], n, n), float(background))
-    test_rows = []
-    for e, (x, y) in enumerate(points):
-        patch = render_patches(microscope, fields, x, y, defocus[e], size_px)
-        _add(expected, photons[e] * patch, x, y)
-        for f in range(p["n_frames"]):
-            test_rows.append((e, f, x, y, photons[e], defocus[e, f]))
+    test_rows = [(e, f, x, y, photons[e], defocus[e, f])
+                 for e, (x, y) in enumerate(points) for f in range(p["n_frames"])]  # fmt: skip
     test_truth = pd.DataFrame(test_rows, columns=["emitter", "frame", "x", "y", "photons",
                                                   "defocus_nm"])  # fmt: skip
+    expected = emitter_images(microscope, fields, test_truth, (n, n), background, size_px)
     return ValidationData(
         microscope=microscope,
         fields=fields,
