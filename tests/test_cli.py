@@ -317,12 +317,12 @@ def test_distributed_scheduler_gives_the_same_table(run_dir, calibrated, tmp_pat
     pd.testing.assert_frame_equal(dist, local)
 
 
-def test_warnings_reach_the_console_as_one_line_without_source(capsys):
+def test_warnings_reach_the_console_as_one_line_without_source():
     from latentz._shared.sanity import LatentzWarning
-    from latentz.cli import _show_warning
+    from latentz.cli import _warning_line
 
     message = LatentzWarning("3 spot widths are far outside\nmore")
-    _show_warning(message, LatentzWarning, "/a/b.py", 7)
-    assert capsys.readouterr().err == "latentz: warning: 3 spot widths are far outside\n"
-    _show_warning(RuntimeWarning("using the CPU"), RuntimeWarning, "/a/b.py", 7, line="src")
-    assert capsys.readouterr().err == "latentz: warning: RuntimeWarning: using the CPU\n"
+    line = _warning_line(message, LatentzWarning, "/a/b.py", 7)
+    assert line == "latentz: warning: 3 spot widths are far outside\n"
+    line = _warning_line(RuntimeWarning("using the CPU"), RuntimeWarning, "/a/b.py", 7, "src")
+    assert line == "latentz: warning: RuntimeWarning: using the CPU\n"

@@ -21,34 +21,25 @@ EXIT_INTERNAL = 1
 EXIT_INTERRUPTED = 130
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Warnings reach the user as one line, without file paths or source lines: latentz's own
-    (LatentzWarning) as they are, others with their category."""
-    from latentz._shared.sanity import LatentzWarning
-
-    kind = "" if issubclass(category, LatentzWarning) else f"{category.__name__}: "
-    click.echo(f"latentz: warning: {kind}{_first_line(message)}", err=True)
-
-
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _warning_line(message, category, *args, **kwargs) -> str:
-    """A warning as one ``latentz: warning: ...`` line (Python's warnings.formatwarning)."""
-    return f"latentz: warning: {_first_line(message)}\n"
+    """A warning as one ``latentz: warning: ...`` line, without file paths or source lines
+    (Python's warnings.formatwarning, so recorders such as pytest.warns still see the warning):
+    latentz's own (LatentzWarning) as they are, others with their category."""
+    from latentz._shared.sanity import LatentzWarning
+
+    kind = "" if issubclass(category, LatentzWarning) else f"{category.__name__}: "
+    return f"latentz: warning: {kind}{_first_line(message)}\n"
 
 
 class _Group(click.Group):
     """A click group that turns expected errors into one line on stderr."""
 
     def invoke(self, ctx: click.Context):
-        with warnings.catch_warnings():  # restored after the command
-            warnings.showwarning = _show_warning
-            return self._invoke(ctx)
-
-    def _invoke(self, ctx: click.Context):
         try:
             formatwarning, warnings.formatwarning = warnings.formatwarning, _warning_line
             try:
@@ -162,8 +153,16 @@ def _device_option(func):
         default="auto",
         show_default=True,
         type=click.Choice(["auto", "cpu", "cuda"]),
+        callback=_resolve_device,
         help="Fit (and detect) on the CPU or an NVIDIA GPU (needs `pip install 'latentz[gpu]'`).",
     )(func)
+
+
+def _resolve_device(ctx: click.Context, param: click.Parameter, device: str) -> str:
+    """The device, resolved while the options are read: before any file is opened."""
+    from latentz.engine import resolve_device
+
+    return resolve_device(device)
 
 
 def _progress(quiet: bool) -> bool:

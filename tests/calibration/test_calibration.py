@@ -176,13 +176,10 @@ def test_bad_input(calibrated):
         calibrate(np.zeros((30, 32, 32)), np.arange(31.0))
 
 
-def test_a_calibration_that_keeps_no_particle_refuses_to_localize(calibrated):
+def test_a_calibration_that_keeps_no_particle_is_one_clear_error(calibrated):
     _, traces, _ = calibrated
-    with pytest.warns(UserWarning):  # the culling and the focal plane say why
-        empty = calibrate_traces(traces.subset([5]), camera=CAM, field_model="nearest")
-    assert empty.kept.size == 0
-    with pytest.raises(ValueError, match="kept none of its 1 particles"):
-        empty.apply(traces_table(traces.subset([0])))
+    with pytest.raises(ValueError, match=r"Every one of the 1 calibration particles failed \("):
+        calibrate_traces(traces.subset([5]), camera=CAM, field_model="nearest")
 
 
 @pytest.mark.parametrize("shape", ["auto", "auto_A"])

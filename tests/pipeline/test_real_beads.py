@@ -26,7 +26,7 @@ CROP = (slice(3, 18), slice(3, 18))
 OVER_COVERS = pytest.mark.xfail(
     strict=True,
     reason="z_err_nm covers 94 % on the 15 px crop (RMSE 3 nm, z_err 3-11 nm): the error "
-    "model (calibration/errors.py, issue 12) decides it",
+    "model (latentz.calibration.errors, issue 12) decides it",
 )
 
 

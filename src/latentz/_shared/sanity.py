@@ -10,10 +10,6 @@ class LatentzWarning(UserWarning):
     """A physically implausible input that latentz accepted but the user should look at."""
 
 
-def _warn(message: str) -> None:
-    warnings.warn(message, LatentzWarning, stacklevel=3)
-
-
 def warn(message: str) -> None:
     """Issue one :class:`LatentzWarning` line (for checks that live beside their data)."""
     warnings.warn(message, LatentzWarning, stacklevel=3)
@@ -22,7 +18,7 @@ def warn(message: str) -> None:
 def check_offset(offset_adu: float, frame_median_adu: float) -> None:
     """Warn if the camera offset (ADU) is above the image median (ADU)."""
     if offset_adu > frame_median_adu:
-        _warn(
+        warn(
             f"Camera offset {offset_adu:g} ADU is above the image median "
             f"{frame_median_adu:g} ADU; expected offset <= {frame_median_adu:g} ADU."
         )
@@ -32,7 +28,7 @@ def check_pixel_size(pixel_nm: float, calibration_pixel_nm: float, *, rtol: floa
     """Warn if a pixel size (nm) differs from the calibration's by more than ``rtol``."""
     low, high = calibration_pixel_nm * (1 - rtol), calibration_pixel_nm * (1 + rtol)
     if not low <= pixel_nm <= high:
-        _warn(
+        warn(
             f"Pixel size {pixel_nm:g} nm is inconsistent with the calibration's "
             f"{calibration_pixel_nm:g} nm; expected {low:g}..{high:g} nm."
         )
@@ -42,7 +38,7 @@ def check_roi_size(roi_size: int | None, calibration_roi_size: int) -> None:
     """Warn if spots were fitted in a ROI (pixels) other than the calibration's: the fitted
     widths, and so the shape value and z, depend on the ROI. None (unknown) passes."""
     if roi_size is not None and int(roi_size) != int(calibration_roi_size):
-        _warn(
+        warn(
             f"The spots were fitted in a {roi_size} px ROI but the calibration in "
             f"{calibration_roi_size} px; z is biased. Use lz.localize(frames, calibration=cal), "
             f"or roi_size={calibration_roi_size}."
@@ -64,7 +60,7 @@ def check_z_step(z_step_nm: float, width_rate: float) -> None:
     low, high = DEFOCUS_RATE
     if np.isfinite(width_rate) and not low <= width_rate <= high:
         step_low, step_high = z_step_nm * width_rate / high, z_step_nm * width_rate / low
-        _warn(
+        warn(
             f"z step {z_step_nm:g} nm makes the spot widths change by {width_rate:.3g} nm per nm "
             f"of z; expected {low:g}..{high:g} for defocus, that is a z step of "
             f"{step_low:.3g}..{step_high:.3g} nm."
@@ -80,7 +76,7 @@ def check_widths(
     low, high = calibrated[0] / factor, calibrated[1] * factor
     outside = (widths < low) | (widths > high)
     if outside.any():
-        _warn(
+        warn(
             f"{int(outside.sum())} spot widths (e.g. {widths[outside][0]:g} px) are far "
             f"outside the calibrated {calibrated[0]:g}..{calibrated[1]:g} px; "
             f"expected {low:g}..{high:g} px."
