@@ -5,7 +5,7 @@ dependency of latentz)::
 
     python -m venv /tmp/benchenv --system-site-packages
     /tmp/benchenv/bin/pip install -r benchmarks/requirements.txt
-    /tmp/benchenv/bin/python benchmarks/bench_fit.py --out benchmarks/results_fit.md
+    /tmp/benchenv/bin/python benchmarks/bench_fit.py --out benchmarks/results/bench_fit.md
 
 For 7 x 7 and 11 x 11 ROIs it simulates ``--n`` ROIs of eq. 1 with Poisson noise (sub-pixel
 positions, rho in [-0.6, 0.6], 10^3–10^5 photons, background 10–100 photons/px; widths in
