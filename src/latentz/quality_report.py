@@ -75,7 +75,8 @@ def _verdict(table: pd.DataFrame) -> str:
             "on every axis (68 % expected)."
         )
     parts = [
-        f"{row['axis']} (1σ covers {row['within 1σ (%)']:.0f} %, the actual RMS error is "
+        f"{row['axis']} against {row['errors from']} (1σ covers "
+        f"{row['within 1σ (%)']:.0f} %, the actual RMS error is "
         f"{row['RMS error / median σ']:.1f} × the median σ)"
         for _, row in bad.iterrows()
     ]
