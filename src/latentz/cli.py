@@ -370,7 +370,7 @@ def localize(
     from latentz._shared.preflight import check_output_file
     from latentz.io import read_stack
     from latentz.pipeline import localize_movies
-    from latentz.quality import summary
+    from latentz.quality import reasons, summary
     from latentz.readout import frame_rate_hz
 
     check_output_file(out, (".parquet", ".pq", ".csv", ".hdf5"))
@@ -402,9 +402,7 @@ def localize(
         device=device,
     )
     counts = summary(table)
-    flags = ", ".join(
-        f"{k.replace('_', ' ')} {v}" for k, v in counts.items() if k not in ("rows", "good") and v
-    )
+    flags = reasons(counts)
     click.echo(
         f"{out}: {counts['rows']} localizations, {int(table['in_range'].sum())} in range, "
         f"{counts['good']} good" + (f" (not good: {flags})" if flags else "")

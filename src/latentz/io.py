@@ -86,11 +86,11 @@ def open_movie(path: str | os.PathLike) -> np.ndarray | da.Array:
     array of :func:`read_stack`."""
     import tifffile
 
-    read_stack(path)  # the checks: exists, a TIFF, complete, 2D or 3D
+    stack = read_stack(path)  # and its checks: exists, a TIFF, complete, 2D or 3D
     try:
         frames = tifffile.memmap(path, mode="r")
     except ValueError:  # compressed or not contiguous
-        return read_stack(path)
+        return stack
     return frames[None] if frames.ndim == 2 else frames
 
 

@@ -209,6 +209,11 @@ def summary(table: pd.DataFrame) -> dict[str, int]:
     return counts
 
 
+def reasons(counts: dict[str, int]) -> str:
+    """The flag counts of :func:`summary` that are not zero, as words: "duplicate 3, ..."."""
+    return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items() if k in FLAGS and v)
+
+
 def good_rows(table: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     """The good rows of a localization table and one line saying what was dropped and why
     (all rows, and an empty line, for a table without the ``good`` column)."""
@@ -216,6 +221,6 @@ def good_rows(table: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         return table, ""
     counts = summary(table)
     dropped = counts["rows"] - counts["good"]
-    reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items() if k in FLAGS and v)
+    why = reasons(counts)
     line = f"used {counts['good']} good of {counts['rows']} localizations; dropped {dropped}"
-    return table[table["good"].astype(bool)], line + (f" ({reasons})" if reasons else "")
+    return table[table["good"].astype(bool)], line + (f" ({why})" if why else "")
