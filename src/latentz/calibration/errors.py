@@ -96,7 +96,7 @@ def covariance_factor(
     factor of 1.5. 1 where the information is not usable.
     """
     from latentz.calibration.shape import shape_value
-    from latentz.fit._model import fisher_information
+    from latentz.fit._model import covariance
 
     params = np.array(params, dtype=np.float64)
     n = len(params)
@@ -106,10 +106,7 @@ def covariance_factor(
         return np.ones(n)
     p = params[ok]
     p[:, 0] = p[:, 1] = (roi_size - 1) / 2  # the information hardly depends on the position
-    info = fisher_information(p, shape=roi_size, readnoise=readnoise)
-    good = np.linalg.cond(info) < 1e12
-    cov = np.full_like(info, np.nan)
-    cov[good] = np.linalg.inv(info[good])
+    cov = covariance(p, shape=roi_size, readnoise=readnoise)
     ref = np.broadcast_to(np.asarray(amplitude_ref, dtype=np.float64), (n,))[ok]
     grad = np.zeros((len(p), 7))
     for i in (2, 4, 5, 6):  # amplitude, wx, wy, rho

@@ -15,7 +15,7 @@ import numpy as np
 from latentz.calibration.local import LocalModels
 from latentz.calibration.shape import shape_sigma, uses_amplitude
 from latentz.calibration.traces import Traces
-from latentz.fit._model import amplitude_of, fisher_information
+from latentz.fit._model import amplitude_of, covariance
 
 __all__ = ["image_crlb", "crlb_sigma_z"]
 
@@ -34,11 +34,8 @@ def image_crlb(
     finite = np.all(np.isfinite(params), axis=1)
     bounds = np.full(params.shape, np.nan)
     if finite.any():
-        info = fisher_information(params[finite], shape=roi_size, readnoise=readnoise)
-        det_ok = np.linalg.cond(info) < 1e12
-        inverse = np.full(info.shape, np.nan)
-        inverse[det_ok] = np.linalg.inv(info[det_ok])
-        bounds[finite] = np.sqrt(np.abs(np.diagonal(inverse, axis1=1, axis2=2)))
+        cov = covariance(params[finite], shape=roi_size, readnoise=readnoise)
+        bounds[finite] = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
     bounds = bounds.reshape(*wx.shape, 7)
     return {
         "amplitude": amplitude,

@@ -29,6 +29,7 @@ __all__ = [
     "model_and_jacobian",
     "fisher_information",
     "crlb",
+    "covariance",
     "moment_start",
 ]
 
@@ -224,6 +225,22 @@ def crlb(params: Any, *, shape: tuple[int, int] | int, readnoise: float = 0.0) -
             out[k] = np.sqrt(np.diag(np.linalg.inv(matrix)))
         except np.linalg.LinAlgError:
             continue
+    return out
+
+
+def covariance(
+    params: Any,
+    *,
+    shape: tuple[int, int] | int,
+    readnoise: float = 0.0,
+    max_condition: float = 1e12,
+) -> np.ndarray:
+    """Inverse Fisher information (n, 7, 7) of the natural parameters, per ROI: the Cramér–Rao
+    covariance; NaN where the information's condition number is ``max_condition`` or more."""
+    info = fisher_information(params, shape=shape, readnoise=readnoise)
+    out = np.full(info.shape, np.nan)
+    usable = np.linalg.cond(info) < max_condition
+    out[usable] = np.linalg.inv(info[usable])
     return out
 
 
