@@ -20,12 +20,13 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
-from latentz.calibration.errors import combine, covariance_factor, field_sigma
+from latentz.calibration.errors import combine, field_sigma, fit_sigma_s
 from latentz.calibration.local import LocalModels, row_mean
-from latentz.calibration.shape import shape_sigma, shape_value, uses_amplitude
+from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
 from latentz.camera import Camera
+from latentz.fit.api import CORRELATION_COLUMNS
 
 __all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
 
@@ -34,7 +35,7 @@ FIELD_MODELS = ("zernike", "natural", "nearest")
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
 SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
-_ERROR_COLUMNS = ("wx_err", "wy_err", "rho_err", "amplitude_err")
+_ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
 _PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
 
 
@@ -449,26 +450,18 @@ class Calibration:
         sigma_cal = _interp_rows(self.local.z_nm, z_sigma, p, z)
         model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(z_count[p], 1))
         if all(c in spots.columns for c in _ERROR_COLUMNS):
-            errs = tuple(spots[c].to_numpy(dtype=np.float64) for c in _ERROR_COLUMNS)
-            sigma_s = shape_sigma(
+            params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
+            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
+            sigma_s = fit_sigma_s(
                 shape,
-                cols["wx"],
-                cols["wy"],
-                cols["rho"],
-                cols["amplitude"],
-                errs,
+                params,
+                spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64),
+                corr,
+                roi_size=int(self.options.get("roi_size") or 11),
+                readnoise=self.camera.readnoise,
                 theta=theta,
                 amplitude_ref=ref,
             )
-            if "background" in spots.columns:  # with the parameters' covariances
-                sigma_s = sigma_s * covariance_factor(
-                    shape,
-                    spots[list(_PARAMS)].to_numpy(dtype=np.float64),
-                    roi_size=int(self.options.get("roi_size") or 11),
-                    readnoise=self.camera.readnoise,
-                    theta=theta,
-                    amplitude_ref=ref,
-                )
             slope = z_slope[p](np.where(in_range, s, 0.0))
             z_err = np.hypot(slope * sigma_s, model_part)
         else:

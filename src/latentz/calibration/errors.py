@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "covariance_factor"]
+__all__ = ["field_sigma", "combine", "fit_sigma_s"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -73,52 +73,60 @@ def combine(*parts: np.ndarray) -> np.ndarray:
     return np.sqrt(total)
 
 
-def covariance_factor(
+def fit_sigma_s(
     shape: str,
     params: np.ndarray,
+    errors: np.ndarray,
+    correlations: np.ndarray | None,
     *,
     roi_size: int,
     readnoise: float,
     theta: float | None,
     amplitude_ref: np.ndarray,
 ) -> np.ndarray:
-    """By how much the parameters' covariances change the Cramér–Rao 1σ of the shape value.
-
-    The ratio of the shape value's error with the whole covariance to the error from the
-    diagonal alone (what :func:`~latentz.calibration.shape.shape_sigma` propagates from a spot's
-    ``*_err`` columns), both from the same Fisher information.
+    """The fit's 1σ error of each spot's shape value s, with the parameters' covariances.
 
     ``params`` (n, 7) are the fitted x, y, amplitude, background, wx, wy, ρ (photoelectrons,
-    px). The Fisher information of the Gaussian at those parameters, centred in a ROI of
-    ``roi_size`` (Poisson and read noise), is inverted, and the shape value's gradient in
-    (amplitude, wx, wy, ρ) is carried through it. wx and wy are strongly correlated (about
-    +0.6), and so are ρ and the widths out of focus, which the diagonal alone misses by up to a
-    factor of 1.5. 1 where the information is not usable.
+    px); ``errors`` (n, 4) the standard deviations of amplitude, wx, wy, ρ (the fit's ``*_err``
+    columns: the sandwich covariance of :mod:`latentz.fit.robust`); ``correlations`` (n, 6) their
+    correlations (:data:`latentz.fit.api.CORRELATED`, the fit's ``*_corr`` columns). The
+    gradient of s in (amplitude, wx, wy, ρ) is carried through that covariance: wx and wy are
+    strongly correlated (about +0.6), and so are ρ and the widths out of focus, which the
+    diagonal alone misses by up to a factor of 1.5. Where the correlations are not given (a
+    table without ``*_corr`` columns) they are those of the Cramér–Rao covariance of the
+    Gaussian at the fitted parameters centred in a ROI of ``roi_size`` (the information hardly
+    depends on the position); zero where that is not usable either.
     """
     from latentz.calibration.shape import shape_value
-    from latentz.fit._model import covariance
+    from latentz.fit._model import PARAMS, covariance
+    from latentz.fit.api import CORRELATED, correlations_of
 
     params = np.array(params, dtype=np.float64)
     n = len(params)
-    out = np.full(n, np.nan)
-    ok = np.all(np.isfinite(params), axis=1)
-    if not ok.any():
-        return np.ones(n)
-    p = params[ok]
-    p[:, 0] = p[:, 1] = (roi_size - 1) / 2  # the information hardly depends on the position
-    cov = covariance(p, shape=roi_size, readnoise=readnoise)
-    ref = np.broadcast_to(np.asarray(amplitude_ref, dtype=np.float64), (n,))[ok]
-    grad = np.zeros((len(p), 7))
-    for i in (2, 4, 5, 6):  # amplitude, wx, wy, rho
-        step = 1e-4 * np.maximum(np.abs(p[:, i]), 1e-3) if i != 6 else np.full(len(p), 1e-5)
-        hi, lo = p.copy(), p.copy()
+    which = [PARAMS.index(k) for k in ("amplitude", "wx", "wy", "rho")]
+    sd = np.asarray(errors, dtype=np.float64).reshape(n, 4)
+    corr = np.full((n, len(CORRELATED)), np.nan)
+    if correlations is not None:
+        corr = np.array(correlations, dtype=np.float64).reshape(n, -1)
+    missing = ~np.all(np.isfinite(corr), axis=1) & np.all(np.isfinite(params), axis=1)
+    if missing.any():
+        p = params[missing].copy()
+        p[:, 0] = p[:, 1] = (roi_size - 1) / 2
+        corr[missing] = correlations_of(covariance(p, shape=roi_size, readnoise=readnoise))
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    ref = np.broadcast_to(np.asarray(amplitude_ref, dtype=np.float64), (n,))
+    grad = np.zeros((n, 4))
+    for k, i in enumerate(which):
+        step = np.maximum(np.abs(sd[:, k]), 1e-9) * 1e-3
+        hi, lo = params.copy(), params.copy()
         hi[:, i] += step
         lo[:, i] -= step
         value = [shape_value(shape, q[:, 4], q[:, 5], q[:, 6], q[:, 2], theta=theta,
                              amplitude_ref=ref) for q in (hi, lo)]  # fmt: skip
-        grad[:, i] = (value[0] - value[1]) / (2 * step)
-    full = np.einsum("ni,nij,nj->n", grad, cov, grad)
-    diagonal = np.einsum("ni,nii->n", grad**2, cov)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out[ok] = np.sqrt(full / diagonal)
-    return np.where(np.isfinite(out), out, 1.0)
+        grad[:, k] = (value[0] - value[1]) / (2 * step)
+    g = grad * sd  # gradient in units of each parameter's σ
+    variance = np.sum(g**2, axis=1)
+    for c, (a, b) in enumerate(CORRELATED):
+        ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
+        variance = variance + 2 * corr[:, c] * g[:, ka] * g[:, kb]
+    return np.sqrt(np.maximum(variance, 0.0))

@@ -14,12 +14,18 @@ from latentz._shared.validate import check_array, check_choice, check_int, check
 from latentz.camera import Camera
 from latentz.engine import resolve_device
 from latentz.fit import _kernels
-from latentz.fit._model import PARAMS, as_param_array, photons_of
+from latentz.fit._model import PARAMS, as_param_array, covariance, photons_of
+from latentz.fit.robust import sandwich_batch
 
 __all__ = ["FitResult", "fit_arrays", "fit_rois", "METHODS", "FIT_COLUMNS"]
 
 METHODS = {"lsq": _kernels.LSQ, "wlsq": _kernels.WLSQ, "mle": _kernels.MLE}
 ERROR_COLUMNS = tuple(f"{name}_err" for name in PARAMS)
+#: Parameter pairs whose correlation the fit reports: those of the shape value (amplitude, wx,
+#: wy, ρ), whose errors are strongly correlated (wx, wy about +0.6).
+CORRELATED = (("amplitude", "wx"), ("amplitude", "wy"), ("amplitude", "rho"), ("wx", "wy"),
+              ("wx", "rho"), ("wy", "rho"))  # fmt: skip
+CORRELATION_COLUMNS = tuple(f"{a}_{b}_corr" for a, b in CORRELATED)
 #: Columns of the table returned by `fit_rois`, in order.
 FIT_COLUMNS = (
     *PARAMS,
@@ -29,6 +35,7 @@ FIT_COLUMNS = (
     "chi2",
     "iterations",
     "converged",
+    *CORRELATION_COLUMNS,
 )
 _RHO_MAX = 0.95
 _W_MIN = 0.3
@@ -44,7 +51,11 @@ class FitResult(NamedTuple):
     params : ndarray (n, 7)
         x, y (px, ROI coordinates), amplitude, background (photoelectrons), wx, wy (px), rho.
     errors : ndarray (n, 7)
-        Cramér–Rao standard deviations of ``params`` at the fit.
+        Standard deviations of ``params``: for "mle" and "wlsq" (whose fixed point is the
+        Poisson maximum-likelihood fit) the sandwich covariance of a misspecified model
+        (:mod:`latentz.fit.robust`), which holds the scatter of a real PSF's fit where the
+        Cramér–Rao bound understates it by up to 1.6x; the Cramér–Rao bound where the sandwich
+        is not usable (its observed information not positive definite) and for "lsq".
     loglik : ndarray (n,)
         Log-likelihood of the data under ``d + s^2 ~ Poisson(mu + s^2)`` at the fit.
     chi2 : ndarray (n,)
@@ -55,6 +66,8 @@ class FitResult(NamedTuple):
         False for a ROI with a non-finite pixel, a fit that stalled or hit ``max_iter``, a fit
         that ended on a parameter bound (other than the background's), a singular Fisher
         information, or a position bound (x_err or y_err) wider than the ROI.
+    correlations : ndarray (n, 6)
+        Correlations of the pairs `CORRELATED` in the same covariance as ``errors``.
     """
 
     params: np.ndarray
@@ -63,6 +76,7 @@ class FitResult(NamedTuple):
     chi2: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    correlations: np.ndarray
 
 
 def parameter_bounds(shape: tuple[int, int], readnoise: float) -> tuple[np.ndarray, np.ndarray]:
@@ -163,7 +177,34 @@ def fit_arrays(
                 data, start, use_start, lower, upper, code, s2, max_iter, tol,
                 min(n, 64 * numba.get_num_threads()), *out,
             )  # fmt: skip
-    return FitResult(params, errors, loglik, chi2, iterations, converged)
+    correlations = _robust_errors(data, params, errors, math.sqrt(s2), code != _kernels.LSQ)
+    return FitResult(params, errors, loglik, chi2, iterations, converged, correlations)
+
+
+def _robust_errors(
+    data: np.ndarray, params: np.ndarray, errors: np.ndarray, readnoise: float, sandwich: bool
+) -> np.ndarray:
+    """Replace the Cramér–Rao ``errors`` (n, 7) in place by the sandwich's where it is usable
+    (``sandwich``: a maximum-likelihood fit) and return the correlations of `CORRELATED` (n, 6)
+    in the covariance used."""
+    n = len(params)
+    cov = sandwich_batch(data, params, readnoise) if sandwich else np.full((n, 7, 7), np.nan)
+    variance = np.diagonal(cov, 0, 1, 2)
+    usable = np.all(variance > 0, axis=1)
+    fallback = ~usable & np.all(np.isfinite(params), axis=1)
+    if fallback.any():  # the Cramér–Rao covariance (NaN where the information is singular)
+        cov[fallback] = covariance(params[fallback], shape=data.shape[1:], readnoise=readnoise)
+    errors[usable] = np.sqrt(variance[usable])
+    return correlations_of(cov)
+
+
+def correlations_of(cov: np.ndarray) -> np.ndarray:
+    """Correlations (n, 6) of the pairs `CORRELATED` in covariances (n, 7, 7) of `PARAMS`."""
+    first = [PARAMS.index(a) for a, _ in CORRELATED]
+    second = [PARAMS.index(b) for _, b in CORRELATED]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sd = np.sqrt(np.diagonal(cov, 0, 1, 2))
+        return cov[:, first, second] / (sd[:, first] * sd[:, second])
 
 
 def result_table(result: FitResult) -> pd.DataFrame:
@@ -176,6 +217,8 @@ def result_table(result: FitResult) -> pd.DataFrame:
     table["chi2"] = result.chi2
     table["iterations"] = result.iterations
     table["converged"] = result.converged
+    for k, name in enumerate(CORRELATION_COLUMNS):
+        table[name] = result.correlations[:, k]
     return table
 
 
@@ -219,8 +262,10 @@ def fit_rois(
     DataFrame
         One row per ROI, in ROI coordinates (pixel ``[i, j]`` centred at ``x = j, y = i``), with
         the columns `FIT_COLUMNS`: x, y, amplitude, background, wx, wy, rho, photons
-        (``2 pi A wx wy sqrt(1 - rho^2)``), their Cramér–Rao errors ``*_err``, loglik, chi2,
-        iterations and converged. A failed fit is returned with ``converged`` False.
+        (``2 pi A wx wy sqrt(1 - rho^2)``), their standard deviations ``*_err`` (`FitResult`:
+        the sandwich covariance, or the Cramér–Rao bound), loglik, chi2, iterations, converged
+        and the correlations ``*_corr`` of the shape's parameters (`CORRELATION_COLUMNS`). A
+        failed fit is returned with ``converged`` False.
 
     Examples
     --------
