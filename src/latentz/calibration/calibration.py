@@ -363,6 +363,30 @@ class Calibration:
             self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
         return self._cache[key]
 
+    def _model_sigma(self, axis: str, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
+        its residual σ at that z over the square root of its planes per polynomial parameter."""
+        sigma, count, _ = self._error_model(axis)
+        if axis == "z":
+            order = self.local.shapes[self.shape].inverse.order
+        else:
+            order = (self.local.dx if axis == "x" else self.local.dy).order
+        return _interp_rows(self.local.z_nm, sigma, p, z) * np.sqrt(
+            (order + 1) / np.maximum(count[p], 1)
+        )
+
+    def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
+        field_sigma`), less the local models' part of the held-out errors."""
+        kind = self.field_model
+        table = self.crossval_of(kind)
+        key = f"crossval_model_sigma/{kind}/{axis}"
+        if key not in self._cache:
+            scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
+            rows = table["particle"].to_numpy()
+            self._cache[key] = scale * self._model_sigma(axis, rows, table["z_nm"].to_numpy())
+        return field_sigma(table, kind, axis, z, distance, model_nm=self._cache[key])
+
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
         if "tree" not in self._cache:
@@ -446,9 +470,8 @@ class Calibration:
             )
             in_range &= located
             shifts = {"x": dx_w, "y": dy_w}
-        z_sigma, z_count, z_slope = self._error_model("z")
-        sigma_cal = _interp_rows(self.local.z_nm, z_sigma, p, z)
-        model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(z_count[p], 1))
+        z_slope = self._error_model("z")[2]
+        model_part = self._model_sigma("z", p, z)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
@@ -465,25 +488,25 @@ class Calibration:
             slope = z_slope[p](np.where(in_range, s, 0.0))
             z_err = np.hypot(slope * sigma_s, model_part)
         else:
-            z_err = sigma_cal
+            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z)
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
-        kind = self.field_model
-        table = self.crossval_of(kind)
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
-            d_sigma, d_count, d_slope = self._error_model(axis)
+            d_slope = self._error_model(axis)[2]
             shift = delta[p](zq) if shifts is None else shifts[axis]
             slope = d_slope[p](zq)
-            sigma_d = _interp_rows(self.local.z_nm, d_sigma, p, z)
-            model_d = sigma_d * np.sqrt((delta.order + 1) / np.maximum(d_count[p], 1))
-            own = spots[f"{axis}_err"].to_numpy(float) if f"{axis}_err" in spots else sigma_d
-            field_d = field_sigma(table, kind, axis, z, distance)  # nm
+            model_d = self._model_sigma(axis, p, z)
+            if f"{axis}_err" in spots:
+                own = spots[f"{axis}_err"].to_numpy(float)
+            else:
+                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z)
+            field_d = self._field_sigma(axis, z, distance)  # nm
             err = combine(own * px, model_d * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_err = combine(z_err, field_sigma(table, kind, "z", z, distance))
+        z_err = combine(z_err, self._field_sigma("z", z, distance))
         out["z_err_nm"] = np.where(in_range, z_err, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p

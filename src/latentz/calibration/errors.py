@@ -30,7 +30,8 @@ MIN_PER_BIN = 30
 
 
 def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
-                distance_px: np.ndarray, *, bin_nm: float = 250.0) -> np.ndarray:  # fmt: skip
+                distance_px: np.ndarray, *, bin_nm: float = 250.0,
+                model_nm: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Field-model error (nm, 1σ) of ``model`` on ``axis`` ("x", "y" or "z") at each z and
     distance from the nearest calibration particle.
 
@@ -41,14 +42,27 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     of held-out distance, ``RMS(err) / RMS(distance)``, interpolated linearly at ``z_nm`` (held
     constant beyond the end bins) and multiplied by ``distance_px``. Planes the model did not
     predict do not count. NaN z gives NaN.
+
+    ``model_nm`` (one per row of ``table``) is the 1σ of the held-out particle's own local model
+    at that plane. A held-out error is the field model's error plus two local-model errors that
+    do not grow with distance: the held-out particle's (its polynomial is the "truth" it is
+    compared with) and its neighbours' (the field model is built from their polynomials; at a
+    spot, :meth:`~latentz.calibration.Calibration.apply` adds the nearest particle's as the
+    local model's σ). Both are of the size of ``model_nm`` (polynomials fitted alike through as
+    many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
+    difference clipped at zero): otherwise they are counted twice and grow with distance.
     """
-    rows = table[(table["model"] == model) & table["in_range"]]
+    use = ((table["model"] == model) & table["in_range"]).to_numpy()
+    rows = table[use]
     z = np.asarray(z_nm, dtype=np.float64)
     if len(rows) == 0:
         return np.full(z.shape, np.nan)
     order = np.argsort(rows["z_nm"].to_numpy())
     zz = rows["z_nm"].to_numpy()[order]
     err2 = rows[f"err_{axis}_nm"].to_numpy()[order] ** 2
+    if model_nm is not None:
+        known = np.asarray(model_nm, dtype=np.float64)[use][order]
+        err2 = err2 - 2 * np.where(np.isfinite(known), known, 0.0) ** 2
     dist2 = rows["distance_px"].to_numpy()[order] ** 2
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
@@ -56,11 +70,11 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     for end in ends:  # merge consecutive bins until each holds enough planes
         if end - first >= MIN_PER_BIN or (end == zz.size and not values):
             centres.append(np.mean(zz[first:end]))
-            values.append(np.sqrt(np.mean(err2[first:end]) / np.mean(dist2[first:end])))
+            values.append(np.sqrt(max(np.mean(err2[first:end]), 0.0) / np.mean(dist2[first:end])))
             first = end
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
-        values[-1] = np.sqrt(np.mean(err2[last]) / np.mean(dist2[last]))
+        values[-1] = np.sqrt(max(np.mean(err2[last]), 0.0) / np.mean(dist2[last]))
     per_px = np.interp(z, np.asarray(centres), np.asarray(values))
     return np.where(np.isfinite(z), per_px * np.asarray(distance_px, dtype=np.float64), np.nan)
 
