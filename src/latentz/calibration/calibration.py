@@ -387,6 +387,51 @@ class Calibration:
             self._cache[key] = scale * self._model_sigma(axis, rows, table["z_nm"].to_numpy())
         return field_sigma(table, kind, axis, z, distance, model_nm=self._cache[key])
 
+    def _locate(self, s: np.ndarray, p: np.ndarray, cols: dict, located: np.ndarray) -> tuple:
+        """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
+        own) and in_range of shape values ``s`` at the spots' positions."""
+        if self.widefield is None:
+            inverse = self.local.shapes[self.shape].inverse[p]
+            in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
+            z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
+            lo, hi = self.z_span_nm[p].T
+            with np.errstate(invalid="ignore"):
+                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
+            return np.where(in_range, z, np.nan), None, in_range
+        # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
+        z, dx_w, dy_w, in_range = self.widefield(
+            np.where(located, cols["x"], np.nan),
+            np.where(located, cols["y"], np.nan),
+            s,
+            iterations=self.options.get("iterations", 0),
+        )
+        return z, {"x": dx_w, "y": dy_w}, in_range & located
+
+    def _dimming_shift(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
+        ref: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """How much brighter-than-the-spot calibration images shift the spots' shape values
+        (:func:`~latentz.calibration.dimming.shape_shift`), from particle ``p``'s refits at the
+        spots' first z; 0 where that is unknown."""
+        from latentz.calibration.dimming import shape_shift
+
+        s2 = self.camera.readnoise**2
+        zq = np.where(np.isfinite(z), z, np.nan)
+
+        def trace_at(name: str) -> np.ndarray:
+            return _interp_rows(self.local.z_nm, self.traces[name], p, zq)
+
+        def shape_of(a, wx, wy, rho):
+            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
+                               amplitude_ref=ref)  # fmt: skip
+
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c_spot = (background + s2) / amplitude
+            c_own = (trace_at("background") + s2) / trace_at("amplitude")
+        shift = shape_shift(shape_of, trace_at, c_spot, c_own)
+        return np.where(np.isfinite(shift), shift, 0.0)
+
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
         if "tree" not in self._cache:
@@ -451,25 +496,11 @@ class Calibration:
             theta=theta,
             amplitude_ref=ref,
         )
-        inverse = model.inverse[p]
-        widefield = self.widefield
-        if widefield is None:
-            in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
-            z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
-            lo, hi = self.z_span_nm[p].T
-            with np.errstate(invalid="ignore"):
-                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
-            z = np.where(in_range, z, np.nan)
-            shifts = None
-        else:  # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
-            z, dx_w, dy_w, in_range = widefield(
-                np.where(located, cols["x"], np.nan),
-                np.where(located, cols["y"], np.nan),
-                s,
-                iterations=self.options.get("iterations", 0),
-            )
-            in_range &= located
-            shifts = {"x": dx_w, "y": dy_w}
+        z, shifts, in_range = self._locate(s, p, cols, located)
+        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+            s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
+                                        z, ref)  # fmt: skip
+            z, shifts, in_range = self._locate(s, p, cols, located)
         z_slope = self._error_model("z")[2]
         model_part = self._model_sigma("z", p, z)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
