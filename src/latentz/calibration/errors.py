@@ -27,6 +27,8 @@ __all__ = ["field_sigma", "combine", "fit_sigma_s"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
+#: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
+SMOOTHING = ("zernike",)
 
 
 def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
@@ -37,14 +39,16 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
 
     A field model that passes through its particles (``nearest``, ``natural``) errs more the
     farther a spot is from them: for a smooth field, in proportion to that distance d. A model
-    that smooths over them (``zernike``, a few terms over the whole field) also misses the field
-    at the particles themselves, by about the same everywhere. So the squared error is taken as
-    ``a² + b² d²``: the held-out errors of ``table`` (:func:`~latentz.calibration.crossval.
+    that smooths over them (:data:`SMOOTHING`: a few Zernike terms over the whole field) also
+    misses the field at the particles themselves, by about the same everywhere. So the squared
+    error is taken as ``a² + b² d²``, with ``a = 0`` for a model that passes through its
+    particles: the held-out errors of ``table`` (:func:`~latentz.calibration.crossval.
     crossval`) are binned in z (``bin_nm`` wide, merged until each holds :data:`MIN_PER_BIN`
     planes), and in each bin ``a²`` and ``b²`` are the least-squares line of the squared errors
-    against the squared held-out distances (:func:`_floor_and_slope`; neither negative). They
-    are interpolated linearly at ``z_nm`` (held constant beyond the end bins) and evaluated at
-    ``distance_px``. Planes the model did not predict do not count. NaN z gives NaN.
+    against the squared held-out distances (:func:`_floor_and_slope`; neither negative), or
+    ``b² = mean(err²) / mean(d²)``. They are interpolated linearly at ``z_nm`` (held constant
+    beyond the end bins) and evaluated at ``distance_px``. Planes the model did not predict do
+    not count. NaN z gives NaN.
 
     ``model_nm`` (one per row of ``table``) is the 1σ of the held-out particle's own local model
     at that plane. A held-out error is the field model's error plus two local-model errors that
@@ -70,24 +74,30 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
     centres, values, first = [], [], 0
+    floor = model in SMOOTHING
     for end in ends:  # merge consecutive bins until each holds enough planes
         if end - first >= MIN_PER_BIN or (end == zz.size and not values):
             centres.append(np.mean(zz[first:end]))
-            values.append(_floor_and_slope(err2[first:end], dist2[first:end]))
+            values.append(_floor_and_slope(err2[first:end], dist2[first:end], floor))
             first = end
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
-        values[-1] = _floor_and_slope(err2[last], dist2[last])
+        values[-1] = _floor_and_slope(err2[last], dist2[last], floor)
     floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
     d2 = np.asarray(distance_px, dtype=np.float64) ** 2
     return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
 
 
-def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
+def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray, floor: bool) -> tuple[float, float]:
     """``(a², b²)`` of the least-squares line ``err² = a² + b² d²`` (``dist2`` = d²), neither
-    negative: with a negative slope the mean square alone, with a negative floor the line
-    through the origin that keeps the mean square (``b² = mean(err²) / mean(d²)``)."""
+    negative: with a negative slope the mean square alone, with a negative floor (or without
+    ``floor``) the line through the origin that keeps the mean square, ``b² = mean(err²) /
+    mean(d²)``."""
     mean_e, mean_d = max(float(np.mean(err2)), 0.0), float(np.mean(dist2))
+    if mean_d <= 0:  # held out at the particles' own places: no growth to measure
+        return mean_e, 0.0
+    if not floor:
+        return 0.0, mean_e / mean_d
     spread = float(np.mean((dist2 - mean_d) ** 2))
     slope = float(np.mean((dist2 - mean_d) * (err2 - np.mean(err2)))) / spread if spread else 0.0
     if slope <= 0:
