@@ -11,10 +11,12 @@ It is predictable from the calibration's own images. For a noise-free image ``f�
 scale f, background b) the maximum-likelihood fit's widths and ρ depend on f and b only through
 the ratio ``c = (b + readnoise²) / A`` of background (and read-noise variance) to the spot's peak
 amplitude A: scaling data and model by f leaves the score equations unchanged. So each
-calibration ROI, its fitted background removed, is refitted over the backgrounds ``c·Â``
-(:data:`LEVELS`; Â its fitted amplitude) without read noise; the calibration's noise is then
-~0.5 % of the peak and the refit is that of the particle's PSF seen as dim emitters over that
-background. :meth:`Calibration.apply <latentz.calibration.Calibration.apply>` interpolates these
+calibration ROI is refitted with ``c·Â`` more background (:data:`LEVELS`; Â its fitted
+amplitude) and no read noise, which is the particle's PSF seen as a dimmer emitter (its own
+background is kept, not subtracted: the fitted background of a bright image also holds the
+PSF's far wings, and removing it would cut them off); the calibration's noise stays ~0.5 % of
+the peak. Each refit's c is measured as a spot's is, from its own fitted background and
+amplitude. :meth:`Calibration.apply <latentz.calibration.Calibration.apply>` interpolates these
 fits at each spot's own c (log c, between the calibration's own c and the levels) and plane, and
 removes the difference of their shape value from the calibration's from the spot's s before z is
 found (:func:`shape_shift`).
@@ -36,29 +38,30 @@ __all__ = ["LEVELS", "DIM_COLUMNS", "dim_fits", "shape_shift"]
 #: c ≈ 0.02–3.
 LEVELS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 _FITTED = ("amplitude", "wx", "wy", "rho")
-#: Trace names of the refits: ``dim{k}_{amplitude, wx, wy, rho}`` for level k.
-DIM_COLUMNS = tuple(f"dim{k}_{name}" for k in range(len(LEVELS)) for name in _FITTED)
+#: Trace names of the refits: ``dim{k}_{amplitude, wx, wy, rho, background}`` for level k.
+DIM_COLUMNS = tuple(
+    f"dim{k}_{name}" for k in range(len(LEVELS)) for name in (*_FITTED, "background")
+)
 
 
 def dim_fits(
     rois: np.ndarray, params: np.ndarray, *, method: str, device: str = "auto"
 ) -> dict[str, np.ndarray]:
     """Refits (:data:`DIM_COLUMNS`, each (n,)) of calibration ROIs ``rois`` (n, h, w,
-    photoelectrons) fitted as ``params`` (n, 7, natural) with their background replaced by
-    ``c·Â`` for each c of :data:`LEVELS` (module notes). NaN where the fit is not usable."""
+    photoelectrons) fitted as ``params`` (n, 7, natural) over ``c·Â`` more background for each
+    c of :data:`LEVELS` (module notes). NaN where the fit is not usable."""
     from latentz.fit import PARAMS, fit_arrays
 
-    amplitude, background = params[:, 2], params[:, 3]
+    amplitude = params[:, 2]
     ok = np.all(np.isfinite(params), axis=1) & (amplitude > 0)
-    signal = rois - np.where(ok, background, 0.0)[:, None, None]
     out = {}
     for k, level in enumerate(LEVELS):
         added = np.where(ok, level * amplitude, 0.0)
         start = params.copy()
-        start[:, 3] = added
-        fit = fit_arrays(signal + added[:, None, None], method=method, init=start, device=device)
+        start[:, 3] += added
+        fit = fit_arrays(rois + added[:, None, None], method=method, init=start, device=device)
         usable = ok & fit.converged
-        for name in _FITTED:
+        for name in (*_FITTED, "background"):
             value = fit.params[:, PARAMS.index(name)]
             out[f"dim{k}_{name}"] = np.where(usable, value, np.nan)
     return out
@@ -72,8 +75,11 @@ def shape_shift(
 ) -> np.ndarray:
     """Bias (n,) of the shape value of spots of background ratio ``c_spot`` against the
     calibration's own fit (ratio ``c_own``): ``s(c_spot) − s(c_own)``, linear in log c between
-    the calibration's own fit and the refits at :data:`LEVELS` above ``c_own`` (the last
-    level's beyond it; 0 where ``c_spot ≤ c_own``; NaN where a refit is missing).
+    the calibration's own fit and the refits above ``c_own`` (the last one's beyond them; 0
+    where ``c_spot ≤ c_own``; NaN where a refit is missing). A refit's own c is measured as a
+    spot's: its fitted background over its fitted amplitude (the refit has no read noise). Both
+    differ from the level: the fitted background of the bright image also holds the PSF's far
+    wings, which are removed with it, and the Gaussian's amplitude changes with the background.
 
     ``traces_at(name)`` gives a trace at each spot's particle and plane ((n,); name one of
     :data:`DIM_COLUMNS`, or "amplitude", "wx", "wy", "rho" for the calibration's own fit), and
@@ -84,8 +90,14 @@ def shape_shift(
     with np.errstate(invalid="ignore", divide="ignore"):
         start = np.log(np.asarray(c_own, dtype=np.float64))
         x = np.maximum(np.log(np.asarray(c_spot, dtype=np.float64)), start)
-    brighter = np.log(LEVELS)[None, :] <= start[:, None]  # levels the calibration is dimmer than
-    knots = np.column_stack([start, np.where(brighter, start[:, None], np.log(LEVELS))])
+        # each refit's own c, measured as a spot's is: its fitted background over its amplitude
+        level = np.log(np.column_stack([
+            traces_at(f"dim{k}_background") / traces_at(f"dim{k}_amplitude")
+            for k in range(len(LEVELS))
+        ]))  # fmt: skip
+    brighter = ~(level > start[:, None])  # levels the calibration is dimmer than (or unknown)
+    knots = np.column_stack([start, np.where(brighter, start[:, None], level)])
+    knots = np.maximum.accumulate(knots, axis=1)  # an unknown level between known ones
     values = np.column_stack([own, np.where(brighter, own[:, None], np.column_stack(dim))])
     rows = np.arange(len(own))
     j = np.sum(knots[:, 1:] < x[:, None], axis=1)  # knots[j] < x <= knots[j + 1]
