@@ -186,3 +186,14 @@ def test_iterations_are_few_from_the_moment_start():
     assert result.converged.all()
     assert np.median(result.iterations) <= 6
     assert math.isclose(float(pd.Series(result.iterations).max()), result.iterations.max())
+
+
+def test_crlb_errors_on_request_and_a_clear_error_for_another_choice():
+    table = truth_table(20, 11, seed=31)
+    rois = noisy_rois(table, 11, seed=32)
+    fit = fit_arrays(rois, errors="crlb")
+    ok = fit.converged
+    np.testing.assert_allclose(fit.errors[ok], crlb(fit.params[ok], shape=11), rtol=1e-6)
+    assert np.isnan(fit.correlations).all()
+    with pytest.raises(ValueError, match="errors"):
+        fit_arrays(rois, errors="fisher")

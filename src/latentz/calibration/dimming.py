@@ -59,7 +59,8 @@ def dim_fits(
         added = np.where(ok, level * amplitude, 0.0)
         start = params.copy()
         start[:, 3] += added
-        fit = fit_arrays(rois + added[:, None, None], method=method, init=start, device=device)
+        fit = fit_arrays(rois + added[:, None, None], method=method, init=start, device=device,
+                         errors="crlb")  # fmt: skip
         usable = ok & fit.converged
         for name in (*_FITTED, "background"):
             value = fit.params[:, PARAMS.index(name)]

@@ -215,6 +215,7 @@ def _fit_stack(
         method=method,
         camera=fit_camera,
         device=device,
+        errors="crlb",  # calibration uses the parameters; its precision is computed apart
     )
     out = {}
     for name in (*TRACE_COLUMNS, "converged"):
