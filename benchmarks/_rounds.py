@@ -20,14 +20,15 @@ import numpy as np
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def time_rounds(step: Callable[[], object], rounds: int) -> np.ndarray:
-    """Wall-clock seconds of ``rounds`` calls of ``step`` (warm-up, if any, is the caller's)."""
-    seconds = np.empty(rounds)
+def time_rounds(step: Callable[[], object], rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """Wall-clock and CPU seconds of each of ``rounds`` calls of ``step`` (warm-up, if any, is
+    the caller's). CPU time, all threads of this process, shows what a loaded machine took away."""
+    wall, cpu = np.empty(rounds), np.empty(rounds)
     for k in range(rounds):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         step()
-        seconds[k] = time.perf_counter() - start
-    return seconds
+        wall[k], cpu[k] = time.perf_counter() - start, time.process_time() - cpu_start
+    return wall, cpu
 
 
 def spread(values: np.ndarray, digits: int = 1) -> str:
@@ -46,14 +47,17 @@ def machine() -> str:
     )
 
 
-def write_results(name: str, title: str, started: str, notes: str, table_md: str) -> Path:
-    """Write ``results/NAME.md``: the title, the exact command, ``started`` (the :func:`machine`
-    line taken when the benchmark began), the notes and the table (markdown); atomically (a
-    temporary file renamed over the old results)."""
+def write_results(
+    name: str, title: str, started: str, notes: str, table_md: str, *, quick: bool = False
+) -> Path:
+    """Write ``results/NAME.md`` (``NAME_quick.md`` for a quick check, which never replaces the
+    full results): the title, the exact command, ``started`` (the :func:`machine` line taken
+    when the benchmark began), the notes and the table (markdown); atomically (a temporary file
+    renamed over the old results)."""
     command = "python benchmarks/" + " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])
     text = "\n".join([f"# {title}", "", f"`{command}`", "", started, "", notes, "", table_md, ""])
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{name}.md"
+    path = RESULTS / f"{name}{'_quick' if quick else ''}.md"
     tmp = path.with_suffix(".md.tmp")
     tmp.write_text(text)
     tmp.replace(path)
