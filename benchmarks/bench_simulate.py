@@ -3,8 +3,8 @@
 rounds after one small warm-up (numba compilation is not what is measured). Prints and writes
 ``results/bench_simulate.md``: wall and CPU seconds, median and range over the rounds.
 
-Run: ``python benchmarks/bench_simulate.py [--rounds 3] [--quick]`` (``--quick``: 30 particles,
-2 rounds, to check that it works).
+Run: ``python benchmarks/bench_simulate.py [--rounds 3] [--quick]`` (``--quick``: 30 particles in
+4 stacks, 2 rounds, to check that it works).
 """
 
 from __future__ import annotations
@@ -22,17 +22,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=300)
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--quick", action="store_true", help="30 particles, 2 rounds")
+    parser.add_argument("--stacks", type=int, default=16)
+    parser.add_argument("--quick", action="store_true", help="30 particles, 4 stacks, 2 rounds")
     args = parser.parse_args()
     if args.quick:
-        args.particles, args.rounds = 30, 2
+        args.particles, args.stacks, args.rounds = 30, 4, 2
     started = machine()
     calibration_dataset(
         n_particles=2, z_nm=np.zeros(3), n_stage_positions=1, frame_shape=(64, 64), min_spacing_px=5
     )
     steps = {
-        f"calibration_dataset({args.particles} particles x 81 planes, 16 stacks of 512 x 512)": (
-            lambda: calibration_dataset(n_particles=args.particles, n_stage_positions=16, seed=1)
+        f"calibration_dataset({args.particles} particles x 81 planes, {args.stacks} stacks of "
+        "512 x 512)": lambda: calibration_dataset(
+            n_particles=args.particles, n_stage_positions=args.stacks, seed=1
         ),
         "gear_movie(quick=True)": lambda: gear_movie(quick=True),
     }

@@ -118,12 +118,14 @@ def focus_error(sim):
     return err
 
 
+@pytest.mark.slow
 def test_focus_follows_the_optical_best_focus_across_the_field(focus_error):
     # the field dependence of best focus (which tilt and field curvature are made of): every
     # particle's z_f minus the optics' best focus has an SD within the paper's 10 nm
     assert np.std(focus_error) <= 10.0
 
 
+@pytest.mark.slow
 def test_focus_within_10_nm_of_the_optical_best_focus(focus_error):
     # a z_f 10 nm off, for all particles (a bias) or each its own way (scatter), gives an RMS of
     # at least 10 nm; the shot noise of 5e5-photon particles gives about 4 nm
@@ -269,6 +271,7 @@ def test_independent_emitters_are_localized_within_their_uncertainty(sim, diamet
     assert rmse <= 1.25 * reported
 
 
+@pytest.mark.slow
 def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
     """A calibration made with 1 µm particles does not localize point emitters (paper Supp.
     Fig. 9: a particle's image is the PSF blurred by the particle, so its shape changes with z
