@@ -299,9 +299,9 @@ def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
         f"point emitters: z RMSE {rmse:.0f} nm, reported {reported:.1f} nm; consistency χ² "
         f"{np.nanmin(chi2):.0f}–{np.nanmax(chi2):.0f} (limit {CHI2_LIMIT})"
     )
-    # against truth: their errors are far outside the reported uncertainty (3x: beyond what a
-    # misjudged error model explains), so they must not pass as good
-    assert rmse > 3 * reported
+    # against truth: their errors are far outside the reported uncertainty (5x: beyond the 2.9x
+    # by which the error model misses for 1 µm emitters, the xfail above), so none may be good
+    assert rmse > 5 * reported
     located = np.isfinite(chi2)
     assert located.mean() >= 0.9 and (chi2[located] > CHI2_LIMIT).all()
     with pytest.warns(UserWarning, match="emitters smaller than the calibration particles"):
