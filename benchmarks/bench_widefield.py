@@ -111,7 +111,7 @@ def main() -> None:
         {
             "model": list(rates),
             f"apply, 10³ spots/s ({n_apply:.0e} spots), median (min–max)": [
-                spread(r, 0) for r in rates.values()
+                spread(r, 1) for r in rates.values()
             ],
             "rounds": args.rounds,
         }
