@@ -1,6 +1,6 @@
 """Timing rounds for the benchmark scripts: run a step several times, report the median and the
-range over the rounds, and write a results file (``benchmarks/results/NAME.md``) that says how it
-was made and how loaded the machine was.
+range over the rounds, and write a markdown results file in ``benchmarks/results/`` that says how
+it was made and how loaded the machine was.
 
 Not a benchmark itself (``run_all.py`` runs ``bench_*.py`` only).
 """
@@ -48,16 +48,18 @@ def machine() -> str:
 
 
 def write_results(
-    name: str, title: str, started: str, notes: str, table_md: str, *, quick: bool = False
+    filename: str, title: str, started: str, notes: str, table_md: str, *, quick: bool = False
 ) -> Path:
-    """Write ``results/NAME.md`` (``NAME_quick.md`` for a quick check, which never replaces the
-    full results): the title, the exact command, ``started`` (the :func:`machine` line taken
-    when the benchmark began), the notes and the table (markdown); atomically (a temporary file
-    renamed over the old results)."""
+    """Write ``filename`` (markdown) in ``results/``, with ``_quick`` before its suffix for a
+    quick check, which never replaces the full results: the title, the exact command,
+    ``started`` (the :func:`machine` line taken when the benchmark began), the notes and the
+    table (markdown); atomically (a temporary file renamed over the old results)."""
     command = "python benchmarks/" + " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])
     text = "\n".join([f"# {title}", "", f"`{command}`", "", started, "", notes, "", table_md, ""])
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{name}{'_quick' if quick else ''}.md"
+    path = RESULTS / filename
+    if quick:
+        path = path.with_name(f"{path.stem}_quick{path.suffix}")
     tmp = path.with_suffix(".md.tmp")
     tmp.write_text(text)
     tmp.replace(path)

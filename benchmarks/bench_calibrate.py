@@ -5,7 +5,7 @@ Four stacks (stage positions) of 121 planes x 512 x 512 pixels, each with 250 as
 Gaussian particles on a 30 px grid, Poisson noise and read noise, are rendered first (not timed);
 then ``calibrate`` runs detection, one ``fit_rois`` batch per stack (30,250 ROIs of 21 x 21 px),
 the local models of all particles as arrays, culling and tilt removal. Prints and writes
-``results/bench_calibrate.md``: wall and CPU seconds, median and range over the rounds.
+``benchmarks/results/bench_calibrate.md``: wall and CPU seconds, median and range over the rounds.
 
 Run: ``python benchmarks/bench_calibrate.py [--particles N] [--planes N] [--rounds 5] [--quick]``
 (``--quick``: 250 particles, 2 rounds, to check that it works).
@@ -115,7 +115,7 @@ def main() -> None:
     )
     print(table.to_string(index=False))
     write_results(
-        "bench_calibrate",
+        "bench_calibrate.md",
         "Calibration speed",
         started,
         "Detection, fitting (21 x 21 px ROIs), local models, culling and tilt, field model "

@@ -2,8 +2,8 @@
 
 10,000 simulations x 2,000 motion cycles x 28 particles (target: under 2 minutes on 2 cores),
 and the rigid-motion fit it starts from, each timed over several rounds after one warm-up (numba
-compilation is not what is measured). Prints and writes ``results/bench_motion.md``: median and
-range over the rounds.
+compilation is not what is measured). Prints and writes ``benchmarks/results/bench_motion.md``:
+median and range over the rounds.
 
 Run: ``python benchmarks/bench_motion.py [--rounds 5] [--quick]`` (``--quick``: 1,000
 simulations, 3 rounds, to check that it works).
@@ -58,7 +58,7 @@ def main() -> None:
     )
     print(table.to_string(index=False))
     write_results(
-        "bench_motion",
+        "bench_motion.md",
         "Monte Carlo motion uncertainty",
         started,
         "Seconds per round after one warm-up; target for the Monte Carlo at the "

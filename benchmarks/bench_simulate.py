@@ -1,7 +1,7 @@
 """Benchmark: the simulator. A calibration dataset of 300 particles x 81 planes in 16 stacks of
 512 x 512 px (target: under 60 s on 2 cores) and the quick gear movie, each timed over several
 rounds after one small warm-up (numba compilation is not what is measured). Prints and writes
-``results/bench_simulate.md``: wall and CPU seconds, median and range over the rounds.
+``benchmarks/results/bench_simulate.md``: wall and CPU seconds, median and range over the rounds.
 
 Run: ``python benchmarks/bench_simulate.py [--rounds 3] [--quick]`` (``--quick``: 30 particles in
 4 stacks, 2 rounds, to check that it works).
@@ -52,7 +52,7 @@ def main() -> None:
     table = pd.DataFrame(rows)
     print(table.to_string(index=False))
     write_results(
-        "bench_simulate",
+        "bench_simulate.md",
         "Simulator speed",
         started,
         "Seconds per round after a small warm-up; target for 300 particles x 81 planes: under "

@@ -11,7 +11,7 @@ iterated z <-> lateral correction (Supp. Note 1), and the throughput of ``Calibr
 
 Run: ``python benchmarks/bench_widefield.py [--rounds 5] [--quick]`` (``--quick``: 120
 calibration and 40 test particles, apply on 2 x 10^4 spots in 2 rounds, to check that it works;
-writes ``results/bench_widefield_quick.md`` only).
+writes the results with ``_quick`` in their names only).
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def main() -> None:
     print(table.round(2).to_string(index=False))
     print(speed.to_string(index=False))
     n_cal, n_test = sizes.get("n_calibration", 500), sizes.get("n_test", 320)
-    name = "bench_widefield" + ("_quick" if args.quick else "")
+    figure = "bench_widefield_quick.png" if args.quick else "bench_widefield.png"
     OUT.mkdir(exist_ok=True)
     shown = study["errors"]["zernike"]
     fig = error_figure(
@@ -127,7 +127,7 @@ def main() -> None:
         title=f"Zernike widefield calibration: {n_test} independent particles, |z| <= 2 µm "
         "(truth: apparent position at best focus)",
     )
-    fig.savefig(OUT / f"{name}.png", dpi=110)
+    fig.savefig(OUT / figure, dpi=110)
     notes = (
         f"{n_cal} calibration particles, {n_test} independent test particles; the study took "
         f"{elapsed:.0f} s. RMSE in nm after one global offset per axis, spots with |z| <= "
@@ -139,11 +139,11 @@ def main() -> None:
         [
             table.round(2).to_markdown(index=False),
             speed.to_markdown(index=False),
-            f"![errors against truth]({name}.png)",
+            f"![errors against truth]({figure})",
         ]
     )
     write_results(
-        "bench_widefield",
+        "bench_widefield.md",
         "Widefield accuracy against simulated truth, and apply's speed",
         started,
         notes,
