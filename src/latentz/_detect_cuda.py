@@ -33,6 +33,7 @@ from latentz.detect import (
     _MERGE_RADIUS_SIGMAS,
     Detections,
     check_frames,
+    check_noise,
     default_threshold,
     edge_noise_gain,
     filter_plan,
@@ -210,6 +211,7 @@ def detect_arrays_cuda(
     threshold: float | None = None,
     sigma: float = 1.5,
     min_distance: int = 2,
+    noise: Any = None,
 ) -> Detections:
     """:func:`latentz.detect.detect_arrays` on the GPU: same arguments, same `Detections`."""
     stack, roi_size = check_frames(frames, roi_size)
@@ -219,6 +221,7 @@ def detect_arrays_cuda(
     threshold = check_positive("threshold", threshold)
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
+    noise_known = check_noise(noise, n_frames)
     batch = batch_size(n_frames, _BATCH_BYTES // (8 * height * width))
     shape = (batch, height, width)
     pinned, d_frames = buffer_pair("frames", shape, np.float64)
@@ -230,7 +233,7 @@ def detect_arrays_cuda(
         d_batch = d_frames[:m]
         d_batch.copy_to_device(pinned[:m])
         filtered = _band_pass(d_batch, sigma, tuple(w[:m] for w in work))
-        noise = _noise(filtered)
+        noise = _noise(filtered) if noise_known is None else noise_known[first : first + m]
         peaks = _find_peaks(filtered, threshold * noise, sigma, reach)
         t, rows, cols = np.ascontiguousarray(peaks[:, :3].T, dtype=np.int64)
         # the maxima of one spot merged and close pairs flagged on the host, as on the CPU

@@ -30,6 +30,7 @@ __all__ = [
     "Detections",
     "band_pass",
     "noise_level",
+    "band_noise",
     "edge_noise_gain",
     "find_peaks",
     "roi_corners",
@@ -175,12 +176,16 @@ def edge_noise_gain(n: int, weights: np.ndarray) -> np.ndarray:
     threshold in those units: a fixed threshold finds most false maxima along the edges.
     """
     r = (len(weights) - 1) // 2
+    if n == 1:  # every tap weighs the one pixel
+        return np.full(1, np.sum(weights) / math.sqrt(np.sum(weights**2)))
     gain = np.ones(n)
-    offsets = np.arange(-r, r + 1)
-    for i in {*range(min(r, n)), *range(max(n - r, 0), n)}:
-        taps = np.clip(i + offsets, 0, n - 1)
-        merged = np.bincount(taps - taps.min(), weights=weights)
-        gain[i] = math.sqrt(float(np.sum(merged**2) / np.sum(weights**2)))
+    near = np.unique(np.r_[np.arange(min(r, n)), np.arange(max(n - r, 0), n)])
+    taps = near[:, None] + np.arange(-r, r + 1)
+    low, high = taps <= 0, taps >= n - 1  # taps that weigh the first and the last pixel
+    inside = ~(low | high)
+    squares = (low * weights).sum(axis=1) ** 2 + (high * weights).sum(axis=1) ** 2
+    squares += (inside * weights**2).sum(axis=1)
+    gain[near] = np.sqrt(squares / np.sum(weights**2))
     return gain
 
 
@@ -282,6 +287,16 @@ def check_frames(frames: Any, roi_size: Any) -> tuple[np.ndarray, int]:
     return stack, roi_size
 
 
+def check_noise(noise: Any, n_frames: int) -> np.ndarray | None:
+    """``noise`` of `detect_arrays` as float64 (None stays None): one value > 0 per frame."""
+    if noise is None:
+        return None
+    values = check_array("noise", noise, ndim=1, dtype_kind="f").astype(np.float64)
+    if len(values) != n_frames or not np.all(values > 0):
+        raise ValueError(f"Expected `noise` to hold {n_frames} values > 0, got {values}.")
+    return values
+
+
 def detect_arrays(
     frames: Any,
     *,
@@ -289,6 +304,7 @@ def detect_arrays(
     threshold: float | None = None,
     sigma: float = 1.5,
     min_distance: int = 2,
+    noise: Any = None,
 ) -> Detections:
     """Detect emitters in each frame and cut a ROI around each; the array core of `detect`.
 
@@ -303,13 +319,17 @@ def detect_arrays(
         size (5 up to 256 x 256 px, about 5.8 at 2048 x 2048 px).
     sigma, min_distance
         As in `find_peaks`.
+    noise : array_like (t,), optional
+        Noise of each band-passed frame in photoelectrons, when known (`band_noise`, for
+        frames of the same movie); default: estimated on each frame.
 
     Returns
     -------
     Detections
     """
     stack, roi_size = check_frames(frames, roi_size)
-    _, height, width = stack.shape
+    n_frames, height, width = stack.shape
+    noise = check_noise(noise, n_frames)
     if threshold is None:
         threshold = default_threshold(height, width)
     threshold = check_positive("threshold", threshold)
@@ -317,7 +337,7 @@ def detect_arrays(
     min_distance = check_int("min_distance", min_distance, minimum=1)
     with one_thread_if(stack.size < _SMALL_PIXELS):
         frame, rows, cols, snr, close = _maxima(
-            stack, threshold, sigma, min_distance, roi_size // 2
+            stack, threshold, sigma, min_distance, roi_size // 2, noise
         )
     row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
     rois = cut_rois(stack, frame, row0, col0, roi_size)
@@ -330,26 +350,51 @@ def _strips(n_frames: int, height: int) -> int:
     return max(1, min(want, height // 64))
 
 
-def _maxima(
-    stack: np.ndarray, threshold: float, sigma: float, min_distance: int, half: int
-) -> tuple[np.ndarray, ...]:
-    """(frame, row, col, snr, close_pair) of the merged maxima of every frame (numba)."""
+def band_noise(frames: Any, *, sigma: float = 1.5) -> np.ndarray:
+    """Noise of each band-passed frame (t, H, W) in photoelectrons, as `detect_arrays`
+    estimates it (numba): pass it back there to detect later frames of the same movie without
+    estimating it again (a median of every pixel of a small frame costs more than detecting)."""
+    stack, _ = check_frames(frames, 3)
+    with one_thread_if(stack.size < _SMALL_PIXELS):
+        return _noise_levels(_band_passed(stack, filter_plan(check_positive("sigma", sigma))))
+
+
+def _band_passed(stack: np.ndarray, plan: FilterPlan) -> np.ndarray:
+    """The band-pass of every frame (float32; numba, in (frame, strip) tasks)."""
     n, height, width = stack.shape
-    plan = filter_plan(sigma)
     if stack.dtype.kind == "f" and stack.dtype != np.float64:
         stack = stack.astype(np.float32)
     shrunk = np.empty((n, -(-height // plan.factor), -(-width // plan.factor)), np.float32)
     _k.block_means(stack, plan.factor, shrunk)
     background = np.empty_like(shrunk)
     _k.blur(shrunk, plan.wide_weights.astype(np.float32), background)
-    strips = _strips(n, height)
     dog = np.empty(stack.shape, np.float32)
     _k.band_pass_strips(
-        stack, background, plan.factor, plan.weights.astype(np.float32), strips, dog
+        stack, background, plan.factor, plan.weights.astype(np.float32), _strips(n, height), dog
     )
-    noise = np.empty(n)
-    _k.noise_levels(dog, noise_stride(stack.shape), _MAD_TO_SIGMA, noise)
-    noise = _usable_noise(noise)
+    return dog
+
+
+def _noise_levels(dog: np.ndarray) -> np.ndarray:
+    noise = np.empty(dog.shape[0])
+    _k.noise_levels(dog, noise_stride(dog.shape), _MAD_TO_SIGMA, noise)
+    return _usable_noise(noise)
+
+
+def _maxima(
+    stack: np.ndarray,
+    threshold: float,
+    sigma: float,
+    min_distance: int,
+    half: int,
+    noise: np.ndarray | None = None,
+) -> tuple[np.ndarray, ...]:
+    """(frame, row, col, snr, close_pair) of the merged maxima of every frame (numba)."""
+    n, height, width = stack.shape
+    plan = filter_plan(sigma)
+    dog = _band_passed(stack, plan)
+    strips = _strips(n, height)
+    noise = _noise_levels(dog) if noise is None else noise
     limits = (threshold * noise).astype(np.float32)
     gain_rows = edge_noise_gain(height, plan.weights).astype(np.float32)
     gain_cols = edge_noise_gain(width, plan.weights).astype(np.float32)
