@@ -150,6 +150,16 @@ def _put(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
+def _new(candidates: np.ndarray, known: np.ndarray, half: int) -> np.ndarray:
+    """Candidates (k, 2) px more than ``half`` px (Chebyshev) from every known position and
+    from every earlier candidate kept."""
+    keep = np.zeros(len(candidates), bool)
+    for k, xy in enumerate(candidates):
+        taken = np.concatenate([known, candidates[:k][keep[:k]]])
+        keep[k] = np.all(np.isfinite(xy)) and bool(np.all(np.abs(taken - xy).max(axis=1) > half))
+    return keep
+
+
 def _close_pairs(xy: np.ndarray, half: int) -> np.ndarray:
     """Another emitter within ``half`` px (Chebyshev) of each rounded position."""
     pix = np.rint(xy).astype(np.int64)
@@ -235,14 +245,13 @@ def localize_tracked(
             if band_noise_known is None:  # once per full detection: a median of every pixel
                 band_noise_known = [band_noise(b, sigma=sigma) for b, _, _ in bands]
             entering = _entering(bands, band_noise_known, roi_size, band_threshold, sigma)
-            if len(entering):
-                gap = np.abs(entering[:, None, :] - xy[None, :, :]).max(axis=2)
-                entering = entering[(gap > half).all(axis=1)]
+            entering = entering[_new(entering, xy, half)]
             if len(entering):
                 extra, _, _, extra_edge = _fit_centred(
                     source, t, entering, roi_size, method, readnoise, None
                 )
-                keep = extra.converged
+                # a maximum on the wing of a tracked spot fits that spot
+                keep = extra.converged & _new(extra.params[:, :2], xy, half)
                 fit = FitResult(
                     *(np.concatenate([a, b[keep]]) for a, b in zip(fit, extra, strict=True))
                 )
