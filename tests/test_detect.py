@@ -7,6 +7,7 @@ from movie_truth import emitter_movie, match
 
 from latentz.detect import (
     DEFAULT_THRESHOLD,
+    band_noise,
     band_pass,
     default_threshold,
     detect,
@@ -185,3 +186,19 @@ def test_edge_noise_gain_is_the_noise_of_band_passed_pure_noise():
     edge = [0, 1, 2, -3, -2, -1]
     np.testing.assert_allclose(measured[edge], gain[edge], rtol=0.12)
     assert measured[0] > 1.4 and measured[-1] > 1.4
+
+
+def test_a_given_noise_level_replaces_the_estimate():
+    rng = np.random.default_rng(8)
+    points = list(zip(rng.uniform(5, 59, 6), rng.uniform(5, 59, 6), strict=True))
+    frames = np.stack([_spot_frame(points, seed=s, photons=800.0) for s in range(3)])
+    found = detect_arrays(frames)
+    noise = band_noise(frames)
+    same = detect_arrays(frames, noise=noise)
+    np.testing.assert_array_equal(same.row, found.row)
+    np.testing.assert_array_equal(same.snr, found.snr)
+    # a doubled noise halves every score and keeps only the maxima above twice the threshold
+    doubled = detect_arrays(frames, noise=2 * noise)
+    np.testing.assert_allclose(np.sort(doubled.snr), np.sort(found.snr[found.snr > 2 * 5.0]) / 2)
+    with pytest.raises(ValueError, match="3 values > 0"):
+        detect_arrays(frames, noise=noise[:2])
