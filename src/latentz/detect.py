@@ -4,7 +4,8 @@ Each frame (in photoelectrons) is filtered by a difference of Gaussians, ``G(sig
 which smooths shot noise at the scale of a spot and removes the slowly varying background. The
 noise of the filtered frame is estimated robustly, as 1.4826 times its median absolute deviation
 from the median, and a local maximum (the largest value within ``min_distance`` pixels) is an
-emitter when it exceeds ``threshold`` times that noise.
+emitter when it exceeds ``threshold`` times that noise, raised near the frame's edges where the
+filter's padding raises the noise (`edge_noise_gain`).
 
 A square ROI of ``roi_size`` pixels is cut around each maximum. Near the frame's edge the ROI is
 shifted inward so that it stays whole, and the detection is flagged ``edge``; the fit then still
