@@ -166,17 +166,18 @@ def fit_arrays(
     return FitResult(params, errors, loglik, chi2, iterations, converged)
 
 
-def result_table(result: FitResult) -> pd.DataFrame:
-    """The columns `FIT_COLUMNS` of a `FitResult`, as a DataFrame."""
-    table = pd.DataFrame(result.params, columns=list(PARAMS))
-    table["photons"] = photons_of(table["amplitude"], table["wx"], table["wy"], table["rho"])
-    for k, name in enumerate(ERROR_COLUMNS):
-        table[name] = result.errors[:, k]
-    table["loglik"] = result.loglik
-    table["chi2"] = result.chi2
-    table["iterations"] = result.iterations
-    table["converged"] = result.converged
-    return table
+def result_table(result: FitResult, *, frame: Any = None, **after: Any) -> pd.DataFrame:
+    """The columns `FIT_COLUMNS` of a `FitResult` as a DataFrame, after a ``frame`` column when
+    one is given and before the columns ``after`` (name=values). Built in one step: inserting
+    columns one by one costs milliseconds per table, the time of fitting hundreds of ROIs."""
+    params = result.params
+    columns = {} if frame is None else {"frame": frame}
+    columns.update({name: params[:, k] for k, name in enumerate(PARAMS)})
+    columns["photons"] = photons_of(params[:, 2], params[:, 4], params[:, 5], params[:, 6])
+    columns.update({name: result.errors[:, k] for k, name in enumerate(ERROR_COLUMNS)})
+    columns.update(loglik=result.loglik, chi2=result.chi2, iterations=result.iterations,
+                   converged=result.converged, **after)  # fmt: skip
+    return pd.DataFrame(columns)
 
 
 def fit_rois(
