@@ -100,17 +100,17 @@ def _replay(pos, rot, trans, valid):
     return np.einsum("kij,pj->kpi", pose_r, q0) + pose_t[:, None, :]
 
 
-def _noise_variance(res, both):
-    """Noise variance (T, P, 3) of every particle in every transition: the square of its own
-    residual there (0 where it is not in both frames)."""
-    return np.where(both[..., None], res, 0.0) ** 2
+def _noise_vectors(res, both):
+    """Noise scale (T, P, 3) of every particle in every transition: its own residual there (0
+    where it is not in both frames). The noise is this vector times one standard normal."""
+    return np.where(both[..., None], res, 0.0)
 
 
-def _explicit_fits(q_prev, q_next, mask, var, rng, n):
+def _explicit_fits(q_prev, q_next, mask, vectors, rng, n):
     """``n`` simulations with every particle's noise drawn explicitly: residuals (n, T, P, 3),
     NaN where a particle is not in both frames, and the fitted R (n, T, 3, 3), t (n, T, 3)."""
     shape = (n,) + q_next.shape
-    noise = np.sqrt(var) * rng.standard_normal(shape)
+    noise = vectors * rng.standard_normal(shape[:-1] + (1,))
     src = np.broadcast_to(q_prev, shape)
     dst = q_next + noise
     w = np.broadcast_to(mask, shape[:-1]).astype(float)
@@ -119,9 +119,9 @@ def _explicit_fits(q_prev, q_next, mask, var, rng, n):
     return np.where(w[..., None] > 0, res, np.nan), r, t
 
 
-def _pilot_rms(q_prev, q_next, mask, var, scale, rng, n_pilot):
+def _pilot_rms(q_prev, q_next, mask, vectors, scale, rng, n_pilot):
     """RMS residual per axis of synthetic fits with explicitly drawn per-particle noise."""
-    res, _, _ = _explicit_fits(q_prev, q_next, mask, var * scale, rng, n_pilot)
+    res, _, _ = _explicit_fits(q_prev, q_next, mask, vectors * np.sqrt(scale), rng, n_pilot)
     return np.sqrt(np.nanmean(res**2, axis=(0, 1, 2)))
 
 
@@ -135,26 +135,24 @@ def _errors(rot, trans, truth):
     )
 
 
-def _statistics(q_prev, q_next, mask, var):
-    """Cholesky-like factors (T, 3, 4, 4) of (H columns, mean noise), whose mean is zero."""
+def _statistics(q_prev, q_next, mask, vectors):
+    """Loadings (T, 3, 4, P) of each particle's standard normal on (H columns, mean noise)."""
     n = mask.sum(axis=1).astype(float)
     a_bar = (mask[..., None] * q_prev).sum(1) / n[:, None]
     a_c = np.where(mask[..., None], q_prev - a_bar[:, None, :], 0.0)
     m = np.concatenate([a_c, mask[..., None] / n[:, None, None]], axis=2)  # (T, P, 4)
-    cov = np.einsum("tpk,tpl,tpm->tlkm", m, var, m)
-    w, v = np.linalg.eigh(cov)
-    factor = v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
+    loadings = np.einsum("tpk,tpl->tlkp", m, vectors)
     b = np.where(mask[..., None], q_next, 0.0)
     h0 = np.einsum("tpk,tpl->tkl", a_c, b)
     b_bar = b.sum(1) / n[:, None]
-    return factor, h0, a_bar, b_bar
+    return loadings, h0, a_bar, b_bar
 
 
 def _simulate_chunk(rng, n_sim, stats, truth):
     """Errors (S, T, 6) of ``n_sim`` simulated fits of every transition."""
-    factor, h0, a_bar, b_bar = stats
-    z = rng.standard_normal(factor.shape[:2] + (n_sim, 4))
-    s = np.matmul(z, np.swapaxes(factor, -1, -2))  # (T, l=3, S, 4)
+    loadings, h0, a_bar, b_bar = stats
+    z = rng.standard_normal((loadings.shape[0], loadings.shape[-1], n_sim))
+    s = np.einsum("tlkp,tps->tlsk", loadings, z)  # (T, l=3, S, 4)
     h = h0[:, None] + np.transpose(s[..., :3], (0, 2, 3, 1))  # H[k, l] += Σ a_k n_l
     rot = rotations_from_covariance(h).reshape(h.shape)
     trans = b_bar[:, None] + np.swapaxes(s[..., 3], 1, 2) - np.einsum("tsij,tj->tsi", rot, a_bar)
@@ -262,7 +260,7 @@ def motion_uncertainty(
     model = _noise_model(tracks, motion, seed)
     chunk = max(1, _CHUNK_MATRICES // model["q_prev"].shape[0])
     starts = range(0, n_sim, chunk)
-    stats = _statistics(model["q_prev"], model["q_next"], model["mask"], model["var"])
+    stats = _statistics(model["q_prev"], model["q_next"], model["mask"], model["vectors"])
     accumulator = None
     for start, chunk_seed in zip(starts, model["seeds"].spawn(len(starts)), strict=True):
         rng = np.random.default_rng(chunk_seed)
@@ -299,7 +297,7 @@ def _noise_model(tracks: pd.DataFrame, motion: pd.DataFrame | None, seed: int) -
     valid = np.isfinite(trans).all(1) & (both.sum(1) >= 3)
     if not valid.any():
         raise ValueError("No transition of `tracks` has 3 or more particles seen in both frames.")
-    var = _noise_variance(res, both)[valid]
+    vectors = _noise_vectors(res, both)[valid]
     synthetic = _replay(pos, rot, trans, valid)
     q_prev, q_next, mask = synthetic[:-1][valid], synthetic[1:][valid], both[valid]
     g0, b0, a0, _ = decompose_rotation(rot[valid])
@@ -308,19 +306,19 @@ def _noise_model(tracks: pd.DataFrame, motion: pd.DataFrame | None, seed: int) -
     experimental = np.sqrt(np.nanmean(res[both] ** 2, axis=0))
     n_pilot = int(np.clip(_PILOT_RESIDUALS // mask.sum(), 2, 32))
     # The fitted residual variance is linear in the noise variance: one rescaling matches it.
-    first = _pilot_rms(q_prev, q_next, mask, var, np.ones(3), pilot_rng, n_pilot)
+    first = _pilot_rms(q_prev, q_next, mask, vectors, np.ones(3), pilot_rng, n_pilot)
     scale = np.where(first > 0, (experimental / first) ** 2, 1.0)
     return {
         "frames": frames[1:][valid],
         "q_prev": q_prev,
         "q_next": q_next,
         "mask": mask,
-        "var": var * scale,
+        "vectors": vectors * np.sqrt(scale),
         "scale": scale,
         "truth": (g0, b0, a0, trans[valid]),
         "residuals": res[valid],
         "experimental_rms": experimental,
-        "synthetic_rms": _pilot_rms(q_prev, q_next, mask, var, scale, pilot_rng, n_pilot),
+        "synthetic_rms": _pilot_rms(q_prev, q_next, mask, vectors, scale, pilot_rng, n_pilot),
         "seeds": seeds,
     }
 
@@ -342,7 +340,7 @@ def representative_simulation(
     model = _noise_model(tracks, motion, seed)
     rng = np.random.default_rng(model["seeds"])
     res, rot, trans = _explicit_fits(
-        model["q_prev"], model["q_next"], model["mask"], model["var"], rng, 1
+        model["q_prev"], model["q_next"], model["mask"], model["vectors"], rng, 1
     )
     columns = ["x_nm", "y_nm", "z_nm"]
     experimental = model["residuals"][model["mask"]]
