@@ -5,12 +5,12 @@ The procedure of the paper, step by step (step 2 differs, see "Why per transitio
 1. Replay the measured transforms in series on the particle positions of the first frame, giving
    synthetic positions identical to the data except for localization noise. (A particle first seen
    later is carried back to frame 0 by the inverse of the composed transforms.)
-2. Take each particle's experimental residual in x, y and z in each transition as the standard
-   deviation of its noise in that transition (the paper takes each particle's mean and variance
-   over all transitions; see below).
-3. For each transition, add to the synthetic positions of the later frame normal noise of those
-   standard deviations, refit the rigid transform from the noise-free earlier frame, and record
-   the error of each degree of freedom against the replayed (true) motion.
+2. Take each particle's experimental residual vector (x, y, z) in each transition as the scale of
+   its noise in that transition (the paper takes each particle's mean and variance per axis over
+   all transitions; see "Why per transition").
+3. For each transition, add to the synthetic positions of the later frame that vector times one
+   standard normal per particle, refit the rigid transform from the noise-free earlier frame, and
+   record the error of each degree of freedom against the replayed (true) motion.
 4. Scale the noise variance per axis (the paper's "additional variance of 8 % to 15 %") so that the
    RMS residuals of the synthetic fits match the experimental ones (Supp. Table 4): a residual
    loses the variance that the fit absorbs, so noise matched to residuals alone is too small.
@@ -22,17 +22,20 @@ on one side of the synthetic fit reproduces the errors of the real two-sided fit
 Why per transition: localization errors are not the same size in every cycle. A particle near the
 edge of the field, or partly outside it, is localized tens of nm off in a few cycles and to a few
 nm in the others. A variance pooled over a particle's transitions spreads those few large errors
-over every cycle, so every simulated cycle is as noisy as the worst ones and the 68 % half-width is
-too wide (the full demo: γ covered 92 % of the cycles, Δx 88 %). Noise of each transition's own
-residual keeps the quiet cycles quiet and the bad ones bad: ``sigma`` then describes the bulk of
-the cycles, ``std`` (larger where a few cycles are bad) their RMS, and ``per_transition=True``
-gives each cycle its own standard deviation.
+over every cycle, so every simulated cycle is as noisy as the worst ones. Those errors are also
+mostly radial (along the line from the field's centre, near the gear's), which does not turn the
+gear; variances drawn independently per axis point them in every direction, and over a revolution
+they turn it. Both made σ too wide: in the full demo γ was covered in 92 % of the cycles and Δx in
+88 %. Noise along each transition's own residual keeps the quiet cycles quiet, the bad ones bad
+and radial errors radial: ``sigma`` then describes the bulk of the cycles, ``std`` (larger where a
+few cycles are bad) their RMS, and ``per_transition=True`` gives each cycle its own standard
+deviation.
 
 Speed: the Kabsch estimate depends on the noisy positions only through ``H = A_cᵀ N`` and the mean
-noise ``n̄`` (``A_c``: the centred, noise-free earlier constellation). Given per-particle normal
-noise these 12 numbers per simulation are jointly normal with a covariance known in closed form,
-so they are drawn directly (12 normals instead of 3 n), exactly equivalent to drawing every
-particle's noise. The rotations come from the batched numba Kabsch kernel; work is chunked over
+noise ``n̄`` (``A_c``: the centred, noise-free earlier constellation). These 12 numbers are linear
+in the particles' standard normals, so they are formed directly from them (n normals and 12 n
+products per simulation instead of 3 n noise values and a fit of n positions), exactly equivalent
+to drawing every particle's noise. The rotations come from the batched numba Kabsch kernel; work is chunked over
 simulations to bound memory.
 """
 
