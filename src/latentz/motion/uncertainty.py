@@ -35,8 +35,8 @@ Speed: the Kabsch estimate depends on the noisy positions only through ``H = A_c
 noise ``n̄`` (``A_c``: the centred, noise-free earlier constellation). These 12 numbers are linear
 in the particles' standard normals, so they are formed directly from them (n normals and 12 n
 products per simulation instead of 3 n noise values and a fit of n positions), exactly equivalent
-to drawing every particle's noise. The rotations come from the batched numba Kabsch kernel; work is chunked over
-simulations to bound memory.
+to drawing every particle's noise. The rotations come from the batched numba Kabsch kernel; work
+is chunked over simulations to bound memory.
 """
 
 from __future__ import annotations
