@@ -30,10 +30,15 @@ __all__ = ["fit_batch_cuda"]
 #: The CPU device functions compiled again for CUDA, callees before callers.
 _DEVICE_FUNCTIONS = (
     "log_factorial",
+    "_log_likelihood",
+    "_chi_square",
     "_start",
+    "_row_start",
+    "_log_ratio",
     "_evaluate",
     "_cholesky",
     "_solve",
+    "_inverse_diagonal",
     "_finish",
     "_fit_one",
     "fit_roi",
@@ -70,7 +75,7 @@ def _fit_kernel(npix: int) -> Any:
     ):  # fmt: skip
         k = cuda.grid(1)
         if k < rois.shape[0]:
-            scratch = cuda.local.array((5, npix), float64)
+            scratch = cuda.local.array((4, npix), float64)
             vecs = cuda.local.array((7, n_params), float64)
             mats = cuda.local.array((3, n_params, n_params), float64)
             fit_roi(

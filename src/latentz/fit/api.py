@@ -89,7 +89,7 @@ def fit_arrays(
     readnoise: float = 0.0,
     init: Any = None,
     max_iter: int = 50,
-    tol: float = 1e-6,
+    tol: float = 1e-2,
     device: str = "auto",
 ) -> FitResult:
     """Fit eq. 1 to each ROI of a stack in photoelectrons; the array core of `fit_rois`.
@@ -108,8 +108,9 @@ def fit_arrays(
     max_iter : int
         Maximum Levenberg–Marquardt iterations per ROI.
     tol : float
-        Convergence when the predicted further decrease of the objective (chi-square units) is at
-        most ``tol`` per pixel.
+        Convergence when the next step is at most ``tol`` Cramér–Rao bounds long (the fit's
+        distance from the optimum, in units of the bounds; for "lsq", of its own errors at the
+        mean pixel variance), or an accepted step lowered the objective by at most ``tol^2``.
     device : {"auto", "cpu", "cuda"}
         Where to fit (:func:`latentz.engine.resolve_device`): the CPU cores, or one GPU thread
         per ROI in numba's CUDA target (extra ``latentz[gpu]``); the results agree.
@@ -186,7 +187,7 @@ def fit_rois(
     camera: Camera | None = None,
     init: Any = None,
     max_iter: int = 50,
-    tol: float = 1e-6,
+    tol: float = 1e-2,
     device: str = "auto",
 ) -> pd.DataFrame:
     """Fit the bivariate Gaussian of eq. 1 to every ROI (Copeland et al. 2021).
@@ -210,7 +211,7 @@ def fit_rois(
     max_iter : int
         Maximum Levenberg–Marquardt iterations per ROI.
     tol : float
-        Convergence tolerance: predicted further decrease of the objective per pixel.
+        Convergence tolerance: the fit's distance from the optimum in Cramér–Rao bounds.
     device : {"auto", "cpu", "cuda"}
         CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``); "auto" uses a usable GPU.
 
