@@ -177,3 +177,17 @@ def test_iterations_are_few_from_the_moment_start():
     assert result.converged.all()
     assert np.median(result.iterations) <= 6
     assert math.isclose(float(pd.Series(result.iterations).max()), result.iterations.max())
+
+
+def test_the_default_tol_ends_within_about_a_hundredth_of_a_bound_of_the_optimum():
+    # tol = 0.01: the fit stops when the next step, or the step after an unevaluated last one
+    # (estimated from how much the last step shrank), is at most 0.01 bounds long
+    table = truth_table(2000, 11, seed=51)
+    rois = noisy_rois(table, 11, seed=52)
+    fit = fit_arrays(rois)
+    optimum = fit_arrays(rois, tol=1e-6)
+    ok = fit.converged & optimum.converged
+    assert ok.mean() > 0.99
+    distance = np.abs(fit.params - optimum.params)[ok] / optimum.errors[ok]
+    assert np.quantile(distance, 0.99) < 0.02
+    assert distance.max() < 0.05

@@ -30,11 +30,13 @@ __all__ = ["fit_batch_cuda"]
 #: The CPU device functions compiled again for CUDA, callees before callers.
 _DEVICE_FUNCTIONS = (
     "log_factorial",
-    "_log_likelihood",
-    "_chi_square",
     "_start",
     "_row_start",
+    "_atanh_series",
     "_log_ratio",
+    "_log_likelihood",
+    "_chi_square",
+    "_far_deviance",
     "_evaluate",
     "_cholesky",
     "_solve",

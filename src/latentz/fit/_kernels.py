@@ -43,6 +43,8 @@ _LAM_MAX = 1e10
 _FASTMATH = {"nsz", "arcp", "contract", "reassoc"}
 #: Largest ``q / 2`` at a row's ends for which `_row_start`'s recurrence is used.
 _EXP_RANGE = 600.0
+#: Largest ``|t|`` for which `_atanh_series` stands in for a logarithm.
+_SERIES_MAX = 0.1
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
@@ -142,13 +144,50 @@ def log_factorial(d):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
+def _row_start(v, x, w, rho, iom, iwx):
+    """``exp(-q / 2)`` at the first pixel of a row, the ratio to the next pixel, and whether the
+    row must be computed pixel by pixel instead (returned as ``(g, ratio, direct)``).
+
+    Along a row ``q`` is quadratic in the column, so the ratio between neighbours changes by the
+    constant factor ``exp(-iom / wx^2)``. ``exp(-q / 2)`` is log-concave, so its smallest value
+    on the row is at an end: where both ends lie above ``exp(-600)``, no value or ratio of the
+    row leaves float64's normal range.
+    """
+    u0 = -x * iwx
+    u1 = (w - 1 - x) * iwx
+    e0 = 0.5 * iom * (u0 * u0 - 2.0 * rho * u0 * v + v * v)
+    e1 = 0.5 * iom * (u1 * u1 - 2.0 * rho * u1 * v + v * v)
+    if e0 > _EXP_RANGE or e1 > _EXP_RANGE:
+        return 0.0, 0.0, True
+    ratio = math.exp(-0.5 * iom * iwx * (2.0 * u0 + iwx - 2.0 * rho * v))
+    return math.exp(-e0), ratio, False
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _atanh_series(t):
+    """``2 atanh(t) = log((1 + t) / (1 - t))`` for ``|t| <= 0.1``, relative error below 1e-13."""
+    t2 = t * t
+    return 2.0 * t * (1.0 + t2 * (1 / 3 + t2 * (1 / 5 + t2 * (1 / 7 + t2 * (1 / 9 + t2 / 11)))))
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _log_ratio(new, old, inv_old):
+    """``log(new / old)`` for positive ``new`` and ``old`` (``inv_old = 1 / old``): the series of
+    ``2 atanh(t)``, ``t = (new - old) / (new + old)``, where ``|t| <= 0.1``, else ``math.log``."""
+    t = (new - old) / (new + old)
+    if abs(t) > _SERIES_MAX:
+        return math.log(new * inv_old)
+    return _atanh_series(t)
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
 def _log_likelihood(roi, mu, weight, s2):
     """``sum d log m - m - log(d!)`` over the pixels of ``d + s2 ~ Poisson(m + s2)``, with the
     model ``mu`` (row-major) and ``weight = 1 / (mu + s2)``; ``-m`` where ``d <= 0``.
 
-    Where ``d >= 8``, Stirling's series for ``log(d!)`` (truncation below ``1e-11``) leaves one
-    logarithm per pixel, ``d log(m / d)``; the ``log d`` of the series are summed as the log of
-    their product.
+    Where ``d >= 8``, Stirling's series for ``log(d!)`` (truncation below ``1e-11``) leaves
+    ``d log(m / d)`` (`_log_ratio`: no logarithm where ``m`` is within about 20 % of ``d``) and
+    ``log d``, summed as the log of the product.
     """
     h, w = roi.shape
     total = 0.0
@@ -163,7 +202,7 @@ def _log_likelihood(roi, mu, weight, s2):
                 inv = 1.0 / d
                 inv2 = inv * inv
                 series = inv * (1 / 12 - inv2 * (1 / 360 - inv2 * (1 / 1260 - inv2 / 1680)))
-                total += d * math.log(m * inv) - m + d - series
+                total += d * _log_ratio(m, d, inv) - m + d - series
                 n_series += 1
                 product *= d
                 if product > 1e200:
@@ -190,39 +229,23 @@ def _chi_square(roi, mu, weight):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _row_start(v, x, w, rho, iom, iwx):
-    """``exp(-q / 2)`` at the first pixel of a row, the ratio to the next pixel, and whether the
-    row must be computed pixel by pixel instead (returned as ``(g, ratio, direct)``).
-
-    Along a row ``q`` is quadratic in the column, so the ratio between neighbours changes by the
-    constant factor ``exp(-iom / wx^2)``. ``exp(-q / 2)`` is log-concave, so its smallest value
-    on the row is at an end: where both ends lie above ``exp(-600)``, no value or ratio of the
-    row leaves float64's normal range.
-    """
-    u0 = -x * iwx
-    u1 = (w - 1 - x) * iwx
-    e0 = 0.5 * iom * (u0 * u0 - 2.0 * rho * u0 * v + v * v)
-    e1 = 0.5 * iom * (u1 * u1 - 2.0 * rho * u1 * v + v * v)
-    if e0 > _EXP_RANGE or e1 > _EXP_RANGE:
-        return 0.0, 0.0, True
-    ratio = math.exp(-0.5 * iom * iwx * (2.0 * u0 + iwx - 2.0 * rho * v))
-    return math.exp(-e0), ratio, False
+def _far_deviance(roi, s2, mu_ref, w_ref, mu, weight):
+    """The deviance change, from ``mu_ref`` to ``mu``, of the pixels that `_evaluate` marked by a
+    negative ``weight`` (a model moved too far for `_atanh_series`); unmarks them."""
+    h, w = roi.shape
+    total = 0.0
+    for i in range(h):
+        for j in range(w):
+            k = i * w + j
+            if weight[k] < 0.0:
+                weight[k] = -weight[k]
+                new = mu[k] + s2
+                total += 2.0 * (new - mu_ref[k] - s2 - (roi[i, j] + s2) * math.log(new * w_ref[k]))
+    return total
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _log_ratio(new, old, inv_old):
-    """``log(new / old)`` for positive ``new`` and ``old`` (``inv_old = 1 / old``): the series of
-    ``2 atanh(t)``, ``t = (new - old) / (new + old)``, where ``|t| <= 0.1`` (relative error below
-    ``1e-13``), else ``math.log``."""
-    t = (new - old) / (new + old)
-    if abs(t) > 0.1:
-        return math.log(new * inv_old)
-    t2 = t * t
-    return 2.0 * t * (1.0 + t2 * (1 / 3 + t2 * (1 / 5 + t2 * (1 / 7 + t2 * (1 / 9 + t2 / 11)))))
-
-
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, grad):
+def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, grad, full=True):
     """Objective at internal parameters ``p``, with ``hess`` and ``grad`` for the next step.
 
     Returns ``(objective with the reference weights, objective with the weights at p)``; they
@@ -236,6 +259,9 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     ``exp(-q / 2)`` is evaluated two exponentials per row: along a row ``q`` is quadratic in the
     column, so each pixel's value is the previous one times a ratio that itself changes by a
     constant factor (`_row_start`), wherever no value of the row falls below ``exp(-600)``.
+
+    With ``full`` False only ``mu_out`` and ``w_out`` are written (for every method), and
+    ``(0, 0)`` is returned.
     """
     h, w = roi.shape
     x = p[0]
@@ -249,8 +275,19 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     iom = 1.0 / om
     iwx = 1.0 / wx
     iwy = 1.0 / wy
-    # ratio of successive steps of exp(-q / 2) along a row
+    # exp(-q / 2) of every pixel into mu_out first: the accumulation loop below then calls no
+    # function, which would force its accumulators out of the registers
     step_ratio = math.exp(-iom * iwx * iwx)
+    for i in range(h):
+        v = (i - y) * iwy
+        g, ratio, direct = _row_start(v, x, w, rho, iom, iwx)
+        for j in range(w):
+            if direct:
+                u = (j - x) * iwx
+                g = math.exp(-0.5 * iom * (u * u - 2.0 * rho * u * v + v * v))
+            mu_out[i * w + j] = g
+            g *= ratio
+            ratio *= step_ratio
     g0 = g1 = g2 = g3 = g4 = g5 = g6 = 0.0
     h00 = h01 = h02 = h03 = h04 = h05 = h06 = 0.0
     h11 = h12 = h13 = h14 = h15 = h16 = 0.0
@@ -260,21 +297,23 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     h55 = h56 = h66 = 0.0
     obj_ref = 0.0
     obj_new = 0.0
+    far = False  # some pixel's model moved too far for the series: its log is added below
     for i in range(h):
         v = (i - y) * iwy
-        g, ratio, direct = _row_start(v, x, w, rho, iom, iwx)
         for j in range(w):
+            k = i * w + j
+            g = mu_out[k]
+            ag = amp * g
+            mu = ag + bg
+            mu_out[k] = mu
+            if not full:
+                w_out[k] = 1.0 / (mu + s2)
+                continue
             u = (j - x) * iwx
             a = (u - rho * v) * iom
             b = (v - rho * u) * iom
             q = u * a + v * b
-            if direct:
-                g = math.exp(-0.5 * q)
-            ag = amp * g
-            mu = ag + bg
             d = roi[i, j]
-            k = i * w + j
-            mu_out[k] = mu
             if method == MLE:
                 mus = mu + s2
                 if mus <= 0.0:
@@ -282,12 +321,17 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
                 ds = d + s2
                 wt = 1.0 / mus
                 w_out[k] = wt
-                change = mus - (mu_ref[k] + s2)
+                old = mu_ref[k] + s2
                 if ds > 0.0:
-                    obj_ref += 2.0 * (change - ds * _log_ratio(mus, mu_ref[k] + s2, w_ref[k]))
+                    t = (mus - old) / (mus + old)
+                    if abs(t) <= _SERIES_MAX:
+                        obj_ref += 2.0 * (mus - old - ds * _atanh_series(t))
+                    else:
+                        w_out[k] = -wt
+                        far = True
                     res = ds * wt - 1.0
                 else:
-                    obj_ref += 2.0 * change
+                    obj_ref += 2.0 * (mus - old)
                     res = -1.0
             elif method == WLSQ:
                 r = d - mu
@@ -347,8 +391,6 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
             h55 += w5 * j5
             h56 += w5 * j6
             h66 += w6 * j6
-            g *= ratio
-            ratio *= step_ratio
     # Scalar accumulators (not array elements) let LLVM keep the sums in registers.
     grad[0] = g0
     grad[1] = g1
@@ -388,6 +430,8 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     for k in range(_NP):
         for m in range(k + 1, _NP):
             hess[m, k] = hess[k, m]
+    if far:
+        obj_ref += _far_deviance(roi, s2, mu_ref, w_ref, mu_out, w_out)
     if method == LSQ:
         obj_new = obj_ref
     return obj_ref, obj_new
@@ -488,10 +532,12 @@ def _fit_one(
     # The start is its own reference: WLSQ's first weights are its own, MLE's objective is 0.
     obj = _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_ref, w_ref, hess, grad)[1]
     converged = False
+    free_step = False
     lam = _LAM0
     iters = 0
     if math.isfinite(obj):
         limit = tol * tol
+        last_step = 0.0  # squared length of the last accepted step if undamped, else 0
         while iters < max_iter:
             iters += 1
             for k in range(_NP):
@@ -507,9 +553,18 @@ def _fit_one(
             predicted = 0.0
             for k in range(_NP):
                 predicted += grad[k] * delta[k]
-            if predicted <= limit and lam <= 1e-2:
-                converged = True
-                break
+            if lam <= 1e-2:
+                if predicted <= limit:
+                    converged = True
+                    break
+                if predicted <= 1.0 and predicted * predicted <= limit * last_step:
+                    # The last step shrank to this one; the next would shrink as much again, to
+                    # within tol: take this one without evaluating it.
+                    for k in range(_NP):
+                        p[k] = min(max(p[k] + delta[k], lower_b[k]), upper_b[k])
+                    free_step = True
+                    converged = True
+                    break
             for k in range(_NP):
                 p_try[k] = min(max(p[k] + delta[k], lower_b[k]), upper_b[k])
             obj_try, obj_try_w = _evaluate(
@@ -526,6 +581,7 @@ def _fit_one(
                     mu_ref[k] = mu_try[k]
                     w_ref[k] = w_try[k]
                 obj = obj_try_w
+                last_step = predicted if lam <= 1e-2 else 0.0
                 lam = max(lam * 0.1, 1e-7)
                 if decrease <= limit:
                     converged = True
@@ -534,6 +590,8 @@ def _fit_one(
                 lam *= 10.0
                 if lam > _LAM_MAX:
                     break
+    if free_step and method != LSQ:
+        _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_ref, w_ref, hess_try, grad, False)
     return _finish(
         roi, p, lower_b, upper_b, method, s2, scale, scratch, hess, grad, mats, vecs,
         converged, iters, out_p, out_e,
@@ -546,7 +604,8 @@ def _finish(
     converged, iters, out_p, out_e,
 ):  # fmt: skip
     """Natural parameters, Cramér–Rao bounds, log-likelihood and chi-square at ``p``, whose
-    model and weights ``1 / (mu + s2)`` are ``scratch[0]`` and ``scratch[2]``."""
+    model and weights ``1 / (mu + s2)`` are ``scratch[0]`` and ``scratch[2]``; the bounds are
+    those of ``hess`` (for LSQ, of the Fisher information at ``p``)."""
     h, w = roi.shape
     mu = scratch[0]
     weight = scratch[2]

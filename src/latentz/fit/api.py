@@ -159,7 +159,8 @@ def fit_arrays(
 
         fit_batch_cuda(data, start, use_start, lower, upper, code, s2, max_iter, tol, out)
     else:
-        with one_thread_if(n < _SMALL_BATCH):
+        # threads take the chunks one at a time: one slowed by other work holds up no other
+        with one_thread_if(n < _SMALL_BATCH), numba.parallel_chunksize(1):
             _kernels.fit_batch(
                 data, start, use_start, lower, upper, code, s2, max_iter, tol,
                 min(n, 64 * numba.get_num_threads()), *out,
