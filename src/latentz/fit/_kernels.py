@@ -440,7 +440,7 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _cholesky(a, lower):
     """Cholesky factor of the symmetric matrix ``a`` into ``lower``; False if not positive."""
-    n = a.shape[0]
+    n = _NP
     for i in range(n):
         for j in range(i + 1):
             s = a[i, j]
@@ -458,7 +458,7 @@ def _cholesky(a, lower):
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _solve(lower, b, out):
     """Solve ``L L^T out = b`` given the Cholesky factor ``lower``."""
-    n = b.shape[0]
+    n = _NP
     for i in range(n):
         s = b[i]
         for k in range(i):
@@ -475,7 +475,7 @@ def _solve(lower, b, out):
 def _inverse_diagonal(lower, work, out):
     """Diagonal of ``(L L^T)^-1`` into ``out`` from the Cholesky factor ``L = lower``, through
     ``M = L^-1`` (lower triangular, into ``work``): ``(L L^T)^-1 = M^T M``."""
-    n = lower.shape[0]
+    n = _NP
     for i in range(n):
         work[i, i] = 1.0 / lower[i, i]
         for j in range(i):
