@@ -25,8 +25,13 @@ Fisher information, so ``delta' H delta`` is the squared distance from the optim
 the bounds (no parameter is more than ``sqrt(delta' H delta)`` of its own bounds away), and a
 full step lowers the objective by just that much; for LSQ ``H`` is scaled to the mean pixel
 variance. Fisher scoring shrinks the distance to the optimum about tenfold per step near it
-(0.07 median, 0.37 at the 99th percentile on the benchmark's ROIs), so with the default
-``tol`` a fit typically ends after three steps, at a few thousandths of a bound from the optimum.
+(0.07 median, 0.37 at the 99th percentile on the benchmark's ROIs). So the last step is taken
+without evaluating it when it is at most one bound long and the step after it, estimated as
+this one shrunk once more by the factor the last accepted step shrank by, would be within
+``tol``: the model is then computed once more, without derivatives, for the log-likelihood and
+chi-square, and the bounds are those of the last evaluated iterate, at most one bound away. With
+the default ``tol`` a fit typically evaluates the model and its Fisher matrix three times and
+ends within 0.01 bounds of the optimum (all within 0.035 on the benchmark's ROIs).
 """
 
 from __future__ import annotations

@@ -44,7 +44,8 @@ class FitResult(NamedTuple):
     params : ndarray (n, 7)
         x, y (px, ROI coordinates), amplitude, background (photoelectrons), wx, wy (px), rho.
     errors : ndarray (n, 7)
-        Cramér–Rao standard deviations of ``params`` at the fit.
+        Cramér–Rao standard deviations of ``params`` at the fit (from the Fisher information of
+        the last iterate whose derivatives were evaluated, at most one bound from the fit).
     loglik : ndarray (n,)
         Log-likelihood of the data under ``d + s^2 ~ Poisson(mu + s^2)`` at the fit.
     chi2 : ndarray (n,)
@@ -108,9 +109,11 @@ def fit_arrays(
     max_iter : int
         Maximum Levenberg–Marquardt iterations per ROI.
     tol : float
-        Convergence when the next step is at most ``tol`` Cramér–Rao bounds long (the fit's
-        distance from the optimum, in units of the bounds; for "lsq", of its own errors at the
-        mean pixel variance), or an accepted step lowered the objective by at most ``tol^2``.
+        The fit stops within about ``tol`` Cramér–Rao bounds of the optimum (for "lsq", of its
+        own errors at the mean pixel variance): when the next step is at most ``tol`` bounds
+        long, when the step after an unevaluated last one would be (:mod:`latentz.fit._kernels`),
+        or when an accepted step lowered the objective by at most ``tol^2``. Below about 1e-6,
+        float64 may not resolve the objective's changes on noisy ROIs.
     device : {"auto", "cpu", "cuda"}
         Where to fit (:func:`latentz.engine.resolve_device`): the CPU cores, or one GPU thread
         per ROI in numba's CUDA target (extra ``latentz[gpu]``); the results agree.
