@@ -44,7 +44,8 @@ class FitResult(NamedTuple):
     params : ndarray (n, 7)
         x, y (px, ROI coordinates), amplitude, background (photoelectrons), wx, wy (px), rho.
     errors : ndarray (n, 7)
-        Cramér–Rao standard deviations of ``params`` at the fit.
+        Cramér–Rao standard deviations of ``params`` at the fit (from the Fisher information of
+        the last iterate whose derivatives were evaluated, at most one bound from the fit).
     loglik : ndarray (n,)
         Log-likelihood of the data under ``d + s^2 ~ Poisson(mu + s^2)`` at the fit.
     chi2 : ndarray (n,)
@@ -89,7 +90,7 @@ def fit_arrays(
     readnoise: float = 0.0,
     init: Any = None,
     max_iter: int = 50,
-    tol: float = 1e-6,
+    tol: float = 1e-2,
     device: str = "auto",
 ) -> FitResult:
     """Fit eq. 1 to each ROI of a stack in photoelectrons; the array core of `fit_rois`.
@@ -108,8 +109,11 @@ def fit_arrays(
     max_iter : int
         Maximum Levenberg–Marquardt iterations per ROI.
     tol : float
-        Convergence when the predicted further decrease of the objective (chi-square units) is at
-        most ``tol`` per pixel.
+        The fit stops within about ``tol`` Cramér–Rao bounds of the optimum (for "lsq", of its
+        own errors at the mean pixel variance): when the next step is at most ``tol`` bounds
+        long, when the step after an unevaluated last one would be (:mod:`latentz.fit._kernels`),
+        or when an accepted step lowered the objective by at most ``tol^2``. Below about 1e-6,
+        float64 may not resolve the objective's changes on noisy ROIs.
     device : {"auto", "cpu", "cuda"}
         Where to fit (:func:`latentz.engine.resolve_device`): the CPU cores, or one GPU thread
         per ROI in numba's CUDA target (extra ``latentz[gpu]``); the results agree.
@@ -158,7 +162,8 @@ def fit_arrays(
 
         fit_batch_cuda(data, start, use_start, lower, upper, code, s2, max_iter, tol, out)
     else:
-        with one_thread_if(n < _SMALL_BATCH):
+        # threads take the chunks one at a time: one slowed by other work holds up no other
+        with one_thread_if(n < _SMALL_BATCH), numba.parallel_chunksize(1):
             _kernels.fit_batch(
                 data, start, use_start, lower, upper, code, s2, max_iter, tol,
                 min(n, 64 * numba.get_num_threads()), *out,
@@ -187,7 +192,7 @@ def fit_rois(
     camera: Camera | None = None,
     init: Any = None,
     max_iter: int = 50,
-    tol: float = 1e-6,
+    tol: float = 1e-2,
     device: str = "auto",
 ) -> pd.DataFrame:
     """Fit the bivariate Gaussian of eq. 1 to every ROI (Copeland et al. 2021).
@@ -211,7 +216,7 @@ def fit_rois(
     max_iter : int
         Maximum Levenberg–Marquardt iterations per ROI.
     tol : float
-        Convergence tolerance: predicted further decrease of the objective per pixel.
+        Convergence tolerance: the fit's distance from the optimum in Cramér–Rao bounds.
     device : {"auto", "cpu", "cuda"}
         CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``); "auto" uses a usable GPU.
 
