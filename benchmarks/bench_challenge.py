@@ -14,7 +14,7 @@ Test frames: made by :class:`latentz.simulate.bead_psf.BeadPSF` from the *held-o
 their images, centred on their true positions and averaged, one per plane, interpolated linearly
 in z and shifted to each emitter's sub-pixel position in the Fourier domain. So the test PSF is
 the challenge simulator's PSF, and no test emitter is a copy of a calibration particle. Emitters
-of 100-10,000 photons (log-uniform), 5-20 per 64 x 64 px frame at uniform positions (3 px from
+of 100-10,000 photons (log-uniform), 5-20 per 128 x 128 px frame at uniform positions (3 px from
 the edges) and uniform z within ±600 nm, over a uniform background, read out by an EMCCD
 (:func:`latentz.simulate.emccd.expose_emccd`: Poisson, gamma-distributed EM gain, read noise).
 
