@@ -32,3 +32,18 @@ def test_ratio_scales_with_the_z_step():
 def test_too_few_planes_give_nan():
     z = np.arange(5.0)
     assert np.isnan(depth_ratio_per_nm(z, _curve(z, 100.0, 2.0, 3.0)[None]))
+
+
+def test_noise_is_not_a_width_curve():
+    # a ROI on background: fits converge on a few planes only, with scattered widths
+    rng = np.random.default_rng(0)
+    z = np.arange(40) * 50.0
+    widths = rng.uniform(36.0, 320.0, z.size)
+    widths[rng.permutation(z.size)[:21]] = np.nan
+    assert np.isnan(depth_ratio_per_nm(z, widths[None]))
+
+
+def test_curve_focused_outside_the_planes_is_left_out():
+    z = np.arange(-750.0, 751.0, 10.0)
+    outside = _curve(z, 150.0, 2000.0, 250.0)  # only one flank: its focus is never imaged
+    assert np.isnan(depth_ratio_per_nm(z, outside[None]))

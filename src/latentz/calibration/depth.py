@@ -22,7 +22,8 @@ _MAX_CURVES = 60
 
 
 def _fit_curve(z_nm: np.ndarray, width_nm: np.ndarray) -> float:
-    """``d / σ0²`` of one width curve (NaN when the fit fails or the curve never narrows)."""
+    """``d / σ0²`` of one width curve (NaN when the fit fails, its focus lies outside the planes
+    or it does not describe the widths)."""
     top = int(np.argmin(width_nm))
     span = float(z_nm.max() - z_nm.min())
     start = np.array([width_nm[top], z_nm[top], span / 4])
@@ -40,18 +41,23 @@ def _fit_curve(z_nm: np.ndarray, width_nm: np.ndarray) -> float:
         )
     except ValueError:
         return np.nan
-    sigma0, _, depth = fit.x
-    return float(depth / sigma0**2) if fit.success else np.nan
+    sigma0, focus, depth = fit.x
+    # a width curve, not noise: its focus among the planes, and the model within a tenth of
+    # the widths' range on most planes
+    misfit = float(np.median(np.abs(residual(fit.x))))
+    fits = z_nm.min() <= focus <= z_nm.max() and misfit <= 0.1 * float(np.ptp(width_nm))
+    return float(depth / sigma0**2) if fit.success and fits else np.nan
 
 
 def depth_ratio_per_nm(z_nm: np.ndarray, widths_nm: np.ndarray) -> float:
     """Median of ``d / σ0²`` (nm⁻¹) over width curves (rows of ``widths_nm``, (n, n_z), nm; NaN
-    where a plane did not converge) at planes ``z_nm``; NaN where no curve can be fitted."""
+    where a plane did not converge) at planes ``z_nm``. Curves with widths on fewer than half
+    the planes are left out; NaN where no curve can be fitted."""
     z = np.asarray(z_nm, dtype=np.float64)
     ratios = []
     for row in np.asarray(widths_nm, dtype=np.float64)[:_MAX_CURVES]:
         ok = np.isfinite(row) & (row > 0)
-        if ok.sum() >= _MIN_PLANES:
+        if ok.sum() >= max(_MIN_PLANES, z.size // 2):  # a spot on most planes, not noise
             ratios.append(_fit_curve(z[ok], row[ok]))
     ratios = np.asarray(ratios)
     ratios = ratios[np.isfinite(ratios)]
