@@ -10,16 +10,17 @@ dependency of latentz)::
 For 7 x 7 and 11 x 11 ROIs it simulates ``--n`` ROIs of eq. 1 with Poisson noise (sub-pixel
 positions, rho in [-0.6, 0.6], 10^3–10^5 photons, background 10–100 photons/px; widths in
 [1, 1.5] px for 7 x 7 and [1, 2] px for 11 x 11, so that neither ROI cuts the spot at less than
-two standard deviations) and fits them with, on two threads each:
+two standard deviations) and fits them with, on ``--threads`` threads each (default 2; 1 compares
+the per-fit work without the threads' scheduling):
 
 - latentz ``fit_arrays`` (``mle`` and ``wlsq``): numba, parallel over ROIs;
 - Picasso ``picasso.fitting.gaussfit.fit_spots_async`` (``ROTATED`` model, ``mle=True``,
-  ``n_threads=2``) seeded by ``picasso.fitting.seeds.initial_parameters_gauss(..., rotated=True)``,
+  ``n_threads``) seeded by ``picasso.fitting.seeds.initial_parameters_gauss(..., rotated=True)``,
   with its default convergence schedule; the rotated Gaussian spans the same family as eq. 1, so
   the same Cramér–Rao bounds apply to its x and y;
-- the older ``picasso.gaussmle.gaussmle`` (``sigmaxy``, eps 1e-3, 100 iterations), run on two
-  threads over halves of the ROIs (``gaussmle_async`` would take 75 % of the cores: one thread
-  here). It integrates an unrotated Gaussian over each pixel, so it does not model these ROIs;
+- the older ``picasso.gaussmle.gaussmle`` (``sigmaxy``, eps 1e-3, 100 iterations), run on the
+  same threads over equal parts of the ROIs (``gaussmle_async`` would take 75 % of the cores).
+  It integrates an unrotated Gaussian over each pixel, so it does not model these ROIs;
 - ``scipy.optimize.least_squares`` (``method="lm"``, analytic Jacobian of eq. 1) one ROI at a
   time in Python, on the first ``--n-scipy`` ROIs.
 
@@ -75,12 +76,12 @@ def run_latentz(rois: np.ndarray, method: str) -> np.ndarray:
     return result.params[:, :2]
 
 
-def run_picasso_rotated(rois: np.ndarray) -> np.ndarray:
+def run_picasso_rotated(rois: np.ndarray, threads: int) -> np.ndarray:
     from picasso.fitting import gaussfit, seeds
 
     spots = rois.astype(np.float32)
     init = seeds.initial_parameters_gauss(spots, spots.shape[1], rotated=True)
-    job = gaussfit.fit_spots_async(gaussfit.ROTATED, spots, init, mle=True, n_threads=2)
+    job = gaussfit.fit_spots_async(gaussfit.ROTATED, spots, init, mle=True, n_threads=threads)
     while not job.finished():
         time.sleep(0.0005)
     job.raise_errors()
@@ -88,15 +89,15 @@ def run_picasso_rotated(rois: np.ndarray) -> np.ndarray:
     return np.column_stack([theta[:, 1], theta[:, 2]])
 
 
-def run_gaussmle(rois: np.ndarray) -> np.ndarray:
+def run_gaussmle(rois: np.ndarray, threads: int) -> np.ndarray:
     from picasso import gaussmle
 
     spots = rois.astype(np.float32)
-    halves = np.array_split(np.arange(len(spots)), 2)
-    with warnings.catch_warnings(), futures.ThreadPoolExecutor(2) as pool:
+    parts = np.array_split(np.arange(len(spots)), threads)
+    with warnings.catch_warnings(), futures.ThreadPoolExecutor(threads) as pool:
         warnings.simplefilter("ignore")
-        parts = list(pool.map(lambda idx: gaussmle._gaussmle(spots[idx], 1e-3, 100), halves))
-    theta = np.concatenate([p[0] for p in parts])
+        fits = list(pool.map(lambda idx: gaussmle._gaussmle(spots[idx], 1e-3, 100), parts))
+    theta = np.concatenate([f[0] for f in fits])
     return theta[:, :2].astype(np.float64)
 
 
@@ -150,17 +151,18 @@ def main() -> None:
     parser.add_argument("--n-time", type=int, default=20_000, help="ROIs per timed run")
     parser.add_argument("--n-scipy", type=int, default=2_000, help="ROIs for the SciPy loop")
     parser.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds")
+    parser.add_argument("--threads", type=int, default=2, help="threads per method")
     parser.add_argument("--out", help="also write the Markdown table here (atomically)")
     args = parser.parse_args()
 
     import numba
 
-    numba.set_num_threads(2)
+    numba.set_num_threads(args.threads)
     methods = {
         "latentz mle": lambda r: run_latentz(r, "mle"),
         "latentz wlsq": lambda r: run_latentz(r, "wlsq"),
-        "Picasso gaussfit ROTATED mle": run_picasso_rotated,
-        "Picasso gaussmle (old)": run_gaussmle,
+        "Picasso gaussfit ROTATED mle": lambda r: run_picasso_rotated(r, args.threads),
+        "Picasso gaussmle (old)": lambda r: run_gaussmle(r, args.threads),
         "scipy least_squares": run_scipy,
     }
     rows = []

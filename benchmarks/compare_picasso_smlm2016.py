@@ -169,33 +169,52 @@ def near(locs, truth, beads, radius_px=3.0):
     return locs[keep]
 
 
-def run_picasso(stack, truth, adu_per_photon, z_nm, *, box, min_ng, method):
-    from picasso import io as pio
+def picasso_detect_fit(frames, camera_info, *, box, min_ng, method):
+    """Picasso's identify (net gradient ``min_ng``, ``box``) and 2D Gaussian fit (``method``)."""
     from picasso import localize as plocalize
-    from picasso import zfit as pzfit
 
-    movie, _ = pio.load_movie(str(TIF))  # as Picasso's users load it (fit() needs its type)
-    n = stack.shape[0]
-    info = [dict(Frames=n, Height=stack.shape[1], Width=stack.shape[2], Pixelsize=PIXEL_NM)]
-    camera_info = dict(
+    ids = plocalize.identify(frames, min_ng, box, threaded=False, return_info=False)
+    locs = plocalize.fit(
+        frames,
+        camera_info=camera_info,
+        identifications=ids,
+        box=box,
+        fitting_method=method,
+        multiprocess=False,
+    )
+    return locs if not isinstance(locs, tuple) else locs[0]
+
+
+def picasso_camera(adu_per_photon):
+    """Picasso's camera_info for the bead stack (baseline, photons per ADU)."""
+    return dict(
         Baseline=BASELINE, Sensitivity=1.0 / adu_per_photon, Gain=1.0, Qe=1.0, Pixelsize=PIXEL_NM
     )
 
-    def detect_fit(frames):
-        ids = plocalize.identify(frames, min_ng, box, threaded=False, return_info=False)
-        locs = plocalize.fit(
-            frames,
-            camera_info=camera_info,
-            identifications=ids,
-            box=box,
-            fitting_method=method,
-            multiprocess=False,
-        )
-        return locs if not isinstance(locs, tuple) else locs[0]
 
+def picasso_calibration(movie, truth, adu_per_photon, z_nm, *, box, min_ng, method):
+    """Picasso's calibrate_z on its detections near the calibration beads; returns the
+    calibration, the movie info zfit needs, and all the detections' 2D fits."""
+    from picasso import zfit as pzfit
+
+    n = movie.shape[0]
+    info = [dict(Frames=n, Height=movie.shape[1], Width=movie.shape[2], Pixelsize=PIXEL_NM)]
+    fits = picasso_detect_fit(
+        movie, picasso_camera(adu_per_photon), box=box, min_ng=min_ng, method=method
+    )
+    cal = pzfit.calibrate_z(near(fits, truth, CAL_BEADS), info, float(z_nm[1] - z_nm[0]), 1.0)
+    return cal, info, fits
+
+
+def run_picasso(stack, truth, adu_per_photon, z_nm, *, box, min_ng, method):
+    from picasso import io as pio
+    from picasso import zfit as pzfit
+
+    movie, _ = pio.load_movie(str(TIF))  # as Picasso's users load it (fit() needs its type)
     t0 = time.perf_counter()
-    cal_locs = near(detect_fit(movie), truth, CAL_BEADS)
-    cal = pzfit.calibrate_z(cal_locs, info, float(z_nm[1] - z_nm[0]), 1.0)
+    cal, info, _ = picasso_calibration(
+        movie, truth, adu_per_photon, z_nm, box=box, min_ng=min_ng, method=method
+    )
     t_cal = time.perf_counter() - t0
 
     def z_fit(locs):
@@ -205,7 +224,9 @@ def run_picasso(stack, truth, adu_per_photon, z_nm, *, box, min_ng, method):
         return _picasso_out(pd.DataFrame(zl))
 
     t0 = time.perf_counter()
-    all_locs = detect_fit(movie)
+    all_locs = picasso_detect_fit(
+        movie, picasso_camera(adu_per_photon), box=box, min_ng=min_ng, method=method
+    )
     out = z_fit(near(all_locs, truth, TEST_BEADS))
     t_loc = time.perf_counter() - t0
     return out, z_fit(near(all_locs, truth, CAL_BEADS)), t_cal, t_loc

@@ -33,7 +33,9 @@ from latentz.detect import (
     _MERGE_RADIUS_SIGMAS,
     Detections,
     check_frames,
+    check_noise,
     default_threshold,
+    edge_noise_gain,
     filter_plan,
     noise_stride,
     roi_corners,
@@ -107,15 +109,16 @@ def _subsample(src, step, dst):
 
 
 @cuda.jit
-def _peaks(filtered, limit, reach, count, out):
+def _peaks(filtered, limit, gain_rows, gain_cols, reach, count, out):
     """List ``(t, i, j, value)`` where ``filtered`` is the maximum within ``reach`` px and above
-    ``limit[t]``; ``count[0]`` counts them (also those beyond the capacity of ``out``)."""
+    ``limit[t] * gain_rows[i] * gain_cols[j]``; ``count[0]`` counts them (also those beyond the
+    capacity of ``out``)."""
     t, i, j = cuda.grid(3)
     n_t, n_i, n_j = filtered.shape
     if t >= n_t or i >= n_i or j >= n_j:
         return
     value = filtered[t, i, j]
-    if not value > limit[t]:
+    if not value > limit[t] * gain_rows[i] * gain_cols[j]:
         return
     for ii in range(max(i - reach, 0), min(i + reach + 1, n_i)):
         for jj in range(max(j - reach, 0), min(j + reach + 1, n_j)):
@@ -179,15 +182,21 @@ def _noise(d_filtered: Any) -> np.ndarray:
     return np.where(noise > 0, noise, 1.0)  # a flat frame, as latentz.detect
 
 
-def _find_peaks(d_filtered: Any, limit: np.ndarray, reach: int) -> np.ndarray:
+def _find_peaks(d_filtered: Any, limit: np.ndarray, sigma: float, reach: int) -> np.ndarray:
     """(k, 4) float64 (frame, row, col, filtered value) of the maxima, in the order of
     ``np.nonzero``."""
     capacity = 4096
+    weights = filter_plan(sigma).weights
+    _, height, width = d_filtered.shape
+    gain_rows = cuda.to_device(edge_noise_gain(height, weights))
+    gain_cols = cuda.to_device(edge_noise_gain(width, weights))
     while True:
         count = cuda.to_device(np.zeros(1, np.int64))
         out = cuda.device_array((capacity, 4), np.float64)
         grid, block = _grid(d_filtered.shape)
-        _peaks[grid, block](d_filtered, cuda.to_device(limit), reach, count, out)
+        _peaks[grid, block](
+            d_filtered, cuda.to_device(limit), gain_rows, gain_cols, reach, count, out
+        )
         found = int(count.copy_to_host()[0])
         if found <= capacity:
             peaks = out[:found].copy_to_host() if found else np.zeros((0, 4))
@@ -202,6 +211,7 @@ def detect_arrays_cuda(
     threshold: float | None = None,
     sigma: float = 1.5,
     min_distance: int = 2,
+    noise: Any = None,
 ) -> Detections:
     """:func:`latentz.detect.detect_arrays` on the GPU: same arguments, same `Detections`."""
     stack, roi_size = check_frames(frames, roi_size)
@@ -211,6 +221,7 @@ def detect_arrays_cuda(
     threshold = check_positive("threshold", threshold)
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
+    noise_known = check_noise(noise, n_frames)
     batch = batch_size(n_frames, _BATCH_BYTES // (8 * height * width))
     shape = (batch, height, width)
     pinned, d_frames = buffer_pair("frames", shape, np.float64)
@@ -222,8 +233,8 @@ def detect_arrays_cuda(
         d_batch = d_frames[:m]
         d_batch.copy_to_device(pinned[:m])
         filtered = _band_pass(d_batch, sigma, tuple(w[:m] for w in work))
-        noise = _noise(filtered)
-        peaks = _find_peaks(filtered, threshold * noise, reach)
+        noise = _noise(filtered) if noise_known is None else noise_known[first : first + m]
+        peaks = _find_peaks(filtered, threshold * noise, sigma, reach)
         t, rows, cols = np.ascontiguousarray(peaks[:, :3].T, dtype=np.int64)
         # the maxima of one spot merged and close pairs flagged on the host, as on the CPU
         keep = np.empty(len(t), np.bool_)

@@ -181,9 +181,10 @@ def noise_levels(dog, stride, mad_to_sigma, out):
 
 
 @numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def local_maxima(dog, limits, radius, n_strips, rows, cols, values, counts):
-    """Pixels above ``limits[t]`` that are the largest within ``radius`` px (Chebyshev; ties all
-    kept), per (frame, strip) task. Task ``k`` writes its first ``rows.shape[1]`` maxima to row
+def local_maxima(dog, limits, gain_rows, gain_cols, radius, n_strips, rows, cols, values, counts):
+    """Pixels above ``limits[t] * gain_rows[i] * gain_cols[j]`` (the noise grows at the edges,
+    `latentz.detect.edge_noise_gain`) that are the largest within ``radius`` px (Chebyshev; ties
+    all kept), per (frame, strip) task. Task ``k`` writes its first ``rows.shape[1]`` maxima to row
     ``k`` of ``rows, cols, values`` and its full count to ``counts[k]``."""
     n, h, w = dog.shape
     cap = rows.shape[1]
@@ -194,9 +195,10 @@ def local_maxima(dog, limits, radius, n_strips, rows, cols, values, counts):
         found = 0
         for i in range(s * h // n_strips, (s + 1) * h // n_strips):
             line = dog[t, i]
+            row_limit = limit * gain_rows[i]
             for j in range(w):
                 v = line[j]
-                if not v > limit:
+                if not v > row_limit * gain_cols[j]:
                     continue
                 peak = True
                 for ii in range(max(i - radius, 0), min(i + radius + 1, h)):

@@ -4,7 +4,8 @@ Each frame (in photoelectrons) is filtered by a difference of Gaussians, ``G(sig
 which smooths shot noise at the scale of a spot and removes the slowly varying background. The
 noise of the filtered frame is estimated robustly, as 1.4826 times its median absolute deviation
 from the median, and a local maximum (the largest value within ``min_distance`` pixels) is an
-emitter when it exceeds ``threshold`` times that noise.
+emitter when it exceeds ``threshold`` times that noise, raised near the frame's edges where the
+filter's padding raises the noise (`edge_noise_gain`).
 
 A square ROI of ``roi_size`` pixels is cut around each maximum. Near the frame's edge the ROI is
 shifted inward so that it stays whole, and the detection is flagged ``edge``; the fit then still
@@ -30,6 +31,8 @@ __all__ = [
     "Detections",
     "band_pass",
     "noise_level",
+    "band_noise",
+    "edge_noise_gain",
     "find_peaks",
     "roi_corners",
     "cut_rois",
@@ -163,6 +166,30 @@ def noise_level(filtered: np.ndarray) -> float:
     return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
 
 
+def edge_noise_gain(n: int, weights: np.ndarray) -> np.ndarray:
+    """Noise of a line of ``n`` pixels filtered with ``weights`` (nearest-edge mode) relative to
+    its interior, per pixel, for white noise.
+
+    Near an edge the taps that fall outside the line all weigh the edge pixel, so its noise
+    counts more: 1.56x on the edge pixel for sigma = 1.5 px. The noise of the band-passed frame
+    at pixel ``(i, j)`` is `noise_level` times the row gain at ``i`` times the column gain at
+    ``j`` (the wide background's share of the noise is neglected), and maxima must clear the
+    threshold in those units: a fixed threshold finds most false maxima along the edges.
+    """
+    r = (len(weights) - 1) // 2
+    if n == 1:  # every tap weighs the one pixel
+        return np.full(1, np.sum(weights) / math.sqrt(np.sum(weights**2)))
+    gain = np.ones(n)
+    near = np.unique(np.r_[np.arange(min(r, n)), np.arange(max(n - r, 0), n)])
+    taps = near[:, None] + np.arange(-r, r + 1)
+    low, high = taps <= 0, taps >= n - 1  # taps that weigh the first and the last pixel
+    inside = ~(low | high)
+    squares = (low * weights).sum(axis=1) ** 2 + (high * weights).sum(axis=1) ** 2
+    squares += (inside * weights**2).sum(axis=1)
+    gain[near] = np.sqrt(squares / np.sum(weights**2))
+    return gain
+
+
 def default_threshold(height: int, width: int) -> float:
     """Threshold (noise units) with as many false maxima per frame as `DEFAULT_THRESHOLD` gives
     on 256 x 256 px: the false maxima of smooth Gaussian noise above ``u`` scale as
@@ -210,8 +237,12 @@ def find_peaks(
     min_distance = check_int("min_distance", min_distance, minimum=1)
     filtered = band_pass(image, sigma=sigma)
     noise = float(_usable_noise(noise_level(filtered)))
+    weights = filter_plan(sigma).weights
+    local_noise = noise * np.outer(
+        edge_noise_gain(image.shape[0], weights), edge_noise_gain(image.shape[1], weights)
+    )
     local_max = ndimage.maximum_filter(filtered, size=2 * min_distance + 1, mode="nearest")
-    rows, cols = np.nonzero((filtered == local_max) & (filtered > threshold * noise))
+    rows, cols = np.nonzero((filtered == local_max) & (filtered > threshold * local_noise))
     return rows, cols, filtered[rows, cols] / noise
 
 
@@ -257,6 +288,16 @@ def check_frames(frames: Any, roi_size: Any) -> tuple[np.ndarray, int]:
     return stack, roi_size
 
 
+def check_noise(noise: Any, n_frames: int) -> np.ndarray | None:
+    """``noise`` of `detect_arrays` as float64 (None stays None): one value > 0 per frame."""
+    if noise is None:
+        return None
+    values = check_array("noise", noise, ndim=1, dtype_kind="f").astype(np.float64)
+    if len(values) != n_frames or not np.all(values > 0):
+        raise ValueError(f"Expected `noise` to hold {n_frames} values > 0, got {values}.")
+    return values
+
+
 def detect_arrays(
     frames: Any,
     *,
@@ -264,6 +305,7 @@ def detect_arrays(
     threshold: float | None = None,
     sigma: float = 1.5,
     min_distance: int = 2,
+    noise: Any = None,
 ) -> Detections:
     """Detect emitters in each frame and cut a ROI around each; the array core of `detect`.
 
@@ -278,13 +320,17 @@ def detect_arrays(
         size (5 up to 256 x 256 px, about 5.8 at 2048 x 2048 px).
     sigma, min_distance
         As in `find_peaks`.
+    noise : array_like (t,), optional
+        Noise of each band-passed frame in photoelectrons, when known (`band_noise`, for
+        frames of the same movie); default: estimated on each frame.
 
     Returns
     -------
     Detections
     """
     stack, roi_size = check_frames(frames, roi_size)
-    _, height, width = stack.shape
+    n_frames, height, width = stack.shape
+    noise = check_noise(noise, n_frames)
     if threshold is None:
         threshold = default_threshold(height, width)
     threshold = check_positive("threshold", threshold)
@@ -292,7 +338,7 @@ def detect_arrays(
     min_distance = check_int("min_distance", min_distance, minimum=1)
     with one_thread_if(stack.size < _SMALL_PIXELS):
         frame, rows, cols, snr, close = _maxima(
-            stack, threshold, sigma, min_distance, roi_size // 2
+            stack, threshold, sigma, min_distance, roi_size // 2, noise
         )
     row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
     rois = cut_rois(stack, frame, row0, col0, roi_size)
@@ -305,34 +351,63 @@ def _strips(n_frames: int, height: int) -> int:
     return max(1, min(want, height // 64))
 
 
-def _maxima(
-    stack: np.ndarray, threshold: float, sigma: float, min_distance: int, half: int
-) -> tuple[np.ndarray, ...]:
-    """(frame, row, col, snr, close_pair) of the merged maxima of every frame (numba)."""
+def band_noise(frames: Any, *, sigma: float = 1.5) -> np.ndarray:
+    """Noise of each band-passed frame (t, H, W) in photoelectrons, as `detect_arrays`
+    estimates it (numba): pass it back there to detect later frames of the same movie without
+    estimating it again (a median of every pixel of a small frame costs more than detecting)."""
+    stack, _ = check_frames(frames, 3)
+    with one_thread_if(stack.size < _SMALL_PIXELS):
+        return _noise_levels(_band_passed(stack, filter_plan(check_positive("sigma", sigma))))
+
+
+def _band_passed(stack: np.ndarray, plan: FilterPlan) -> np.ndarray:
+    """The band-pass of every frame (float32; numba, in (frame, strip) tasks)."""
     n, height, width = stack.shape
-    plan = filter_plan(sigma)
     if stack.dtype.kind == "f" and stack.dtype != np.float64:
         stack = stack.astype(np.float32)
     shrunk = np.empty((n, -(-height // plan.factor), -(-width // plan.factor)), np.float32)
     _k.block_means(stack, plan.factor, shrunk)
     background = np.empty_like(shrunk)
     _k.blur(shrunk, plan.wide_weights.astype(np.float32), background)
-    strips = _strips(n, height)
     dog = np.empty(stack.shape, np.float32)
     _k.band_pass_strips(
-        stack, background, plan.factor, plan.weights.astype(np.float32), strips, dog
+        stack, background, plan.factor, plan.weights.astype(np.float32), _strips(n, height), dog
     )
-    noise = np.empty(n)
-    _k.noise_levels(dog, noise_stride(stack.shape), _MAD_TO_SIGMA, noise)
-    noise = _usable_noise(noise)
+    return dog
+
+
+def _noise_levels(dog: np.ndarray) -> np.ndarray:
+    noise = np.empty(dog.shape[0])
+    _k.noise_levels(dog, noise_stride(dog.shape), _MAD_TO_SIGMA, noise)
+    return _usable_noise(noise)
+
+
+def _maxima(
+    stack: np.ndarray,
+    threshold: float,
+    sigma: float,
+    min_distance: int,
+    half: int,
+    noise: np.ndarray | None = None,
+) -> tuple[np.ndarray, ...]:
+    """(frame, row, col, snr, close_pair) of the merged maxima of every frame (numba)."""
+    n, height, width = stack.shape
+    plan = filter_plan(sigma)
+    dog = _band_passed(stack, plan)
+    strips = _strips(n, height)
+    noise = _noise_levels(dog) if noise is None else noise
     limits = (threshold * noise).astype(np.float32)
+    gain_rows = edge_noise_gain(height, plan.weights).astype(np.float32)
+    gain_cols = edge_noise_gain(width, plan.weights).astype(np.float32)
     counts = np.zeros(n * strips, np.int64)
     cap = 256
     while True:
         rows = np.empty((n * strips, cap), np.int64)
         cols = np.empty((n * strips, cap), np.int64)
         values = np.empty((n * strips, cap), np.float32)
-        _k.local_maxima(dog, limits, min_distance, strips, rows, cols, values, counts)
+        _k.local_maxima(
+            dog, limits, gain_rows, gain_cols, min_distance, strips, rows, cols, values, counts
+        )
         if counts.max(initial=0) <= cap:
             break
         cap = int(counts.max())

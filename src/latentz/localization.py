@@ -80,14 +80,13 @@ def _localize_chunk(
         refit = fit_arrays(rois, method=method, readnoise=readnoise, device=device)
         fit = type(fit)(*(_replace_rows(a, b, moved) for a, b in zip(fit, refit, strict=True)))
         row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
-    table = result_table(fit)
-    table["x"] += col0
-    table["y"] += row0
-    table.insert(0, "frame", first_frame + found.frame)
-    table["snr"] = found.snr
-    table["edge"] = edge
-    table["close_pair"] = found.close_pair
-    return table
+    params = fit.params.copy()
+    params[:, 0] += col0
+    params[:, 1] += row0
+    return result_table(
+        fit._replace(params=params), frame=first_frame + found.frame, snr=found.snr, edge=edge,
+        close_pair=found.close_pair,
+    )  # fmt: skip
 
 
 def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:

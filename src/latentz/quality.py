@@ -22,7 +22,8 @@ and, with a calibration,
 
 When most spots of a table are inconsistent, :func:`check_calibration_fits` warns once, naming
 the likely cause, and flags every spot of the table. The cause comes from ``width_ratio``
-(observed over calibrated mean width) and ``axis_mismatch`` (ellipticity across the
+(observed over calibrated mean width: emitters of another size than the calibration particles,
+paper Supp. Fig. 9, or other optics) and ``axis_mismatch`` (ellipticity across the
 calibration's astigmatism axis).
 """
 
@@ -185,15 +186,17 @@ def check_calibration_fits(table: pd.DataFrame) -> pd.DataFrame:
         )
     elif abs(np.log(ratio)) > np.log(1.1):
         cause = (
-            f"their widths are {ratio:.2g}x the calibration's: another pixel size, wavelength "
-            "or objective (another microscope or camera)"
+            f"their widths are {ratio:.2g}x the calibration's: emitters "
+            f"{'smaller' if ratio < 1 else 'larger'} than the calibration particles (a "
+            "particle's image is the PSF blurred by the particle, so it changes with z unlike a "
+            "point's), or another pixel size, wavelength or objective"
         )
     else:
         cause = "their shapes differ from the calibration's: another microscope or camera"
     warn(
         f"The calibration does not fit these data: {share:.0%} of the spots are inconsistent "
         f"with it ({cause}); every spot is flagged `inconsistent` and not good. Calibrate on "
-        "this microscope and camera."
+        "this microscope and camera, with emitters like those you measure."
     )
     return table.assign(inconsistent=True, good=False)
 

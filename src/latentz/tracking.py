@@ -26,7 +26,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from latentz.camera import Camera
-from latentz.detect import cut_rois, default_threshold, detect_arrays, roi_corners
+from latentz.detect import band_noise, cut_rois, default_threshold, detect_arrays, roi_corners
 from latentz.fit.api import FitResult, fit_arrays, result_table
 
 __all__ = ["localize_tracked"]
@@ -150,6 +150,16 @@ def _put(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
+def _new(candidates: np.ndarray, known: np.ndarray, half: int) -> np.ndarray:
+    """Candidates (k, 2) px more than ``half`` px (Chebyshev) from every known position and
+    from every earlier candidate kept."""
+    keep = np.zeros(len(candidates), bool)
+    for k, xy in enumerate(candidates):
+        taken = np.concatenate([known, candidates[:k][keep[:k]]])
+        keep[k] = np.all(np.isfinite(xy)) and bool(np.all(np.abs(taken - xy).max(axis=1) > half))
+    return keep
+
+
 def _close_pairs(xy: np.ndarray, half: int) -> np.ndarray:
     """Another emitter within ``half`` px (Chebyshev) of each rounded position."""
     pix = np.rint(xy).astype(np.int64)
@@ -158,26 +168,37 @@ def _close_pairs(xy: np.ndarray, half: int) -> np.ndarray:
     return (gap <= half).any(axis=1)
 
 
-def _edge_bands(source: _Source, t: int, size: int, threshold: float, sigma: float) -> np.ndarray:
-    """(x, y) px of detections in the bands ``size`` px wide along the frame's four edges.
-
-    The left and right bands are transposed to lie like the top and bottom ones, and bands of
-    one length are detected in one call (one per frame for a square frame).
-    """
+def _edge_bands(source: _Source, t: int, size: int) -> list[tuple[np.ndarray, ...]]:
+    """The bands ``size`` px wide along the four edges of frame ``t`` (photoelectrons), in
+    groups of one length (one group for a square frame): (bands (k, size, length), the frame
+    row or column of each band's first line (k,), transposed (k,)). The left and right bands are
+    transposed to lie like the top and bottom ones."""
     h, w = source.shape
     top = source.band(t, slice(0, size), slice(0, w))
     bottom = source.band(t, slice(h - size, h), slice(0, w))
     left = source.band(t, slice(0, h), slice(0, size)).T
     right = source.band(t, slice(0, h), slice(w - size, w)).T
-    # (bands, offset of each band's first row across the frame, transposed)
     groups = [([top, bottom], [0, h - size], False), ([left, right], [0, w - size], True)]
     if h == w:
-        groups = [([top, bottom, left, right], [0, h - size, 0, w - size], None)]
+        groups = [([top, bottom, left, right], [0, h - size, 0, w - size], [0, 0, 1, 1])]
+    return [
+        (np.stack(bands), np.asarray(first), np.broadcast_to(np.asarray(flip, bool), len(bands)))
+        for bands, first, flip in groups
+    ]
+
+
+def _entering(
+    groups: list[tuple[np.ndarray, ...]], noise: list[np.ndarray], size: int, threshold: float,
+    sigma: float,
+) -> np.ndarray:  # fmt: skip
+    """(x, y) px of the detections in the edge bands of `_edge_bands`, whose band-passed noise
+    is ``noise`` (`latentz.detect.band_noise`, one array per group)."""
     found = []
-    for bands, offsets, transposed in groups:
-        det = detect_arrays(np.stack(bands), roi_size=size, threshold=threshold, sigma=sigma)
-        across = det.row + np.asarray(offsets)[det.frame]
-        flip = det.frame >= 2 if transposed is None else np.full(len(det.frame), transposed)
+    for (bands, first, transposed), group_noise in zip(groups, noise, strict=True):
+        det = detect_arrays(bands, roi_size=size, threshold=threshold, sigma=sigma,
+                            noise=group_noise)  # fmt: skip
+        across = det.row + first[det.frame]
+        flip = transposed[det.frame]
         x = np.where(flip, across, det.col)
         y = np.where(flip, det.col, across)
         found.append(np.column_stack([x, y]).astype(np.float64))
@@ -210,6 +231,7 @@ def localize_tracked(
     tracked: list[tuple[int, FitResult, np.ndarray, np.ndarray]] = []
     current = previous = np.empty((0, 2))
     params = np.empty((0, 7))
+    band_noise_known = None
     for t in tqdm(range(movie.shape[0]), unit="frame", disable=not progress):
         full = t % detect_every == 0 or len(current) == 0
         if not full:
@@ -219,20 +241,21 @@ def localize_tracked(
             lost = ~fit.converged | (np.abs(xy - guess).max(axis=1) > half - 1)
             full = bool(lost.any())
         if not full:
-            entering = _edge_bands(source, t, roi_size, band_threshold, sigma)
-            if len(entering):
-                gap = np.abs(entering[:, None, :] - xy[None, :, :]).max(axis=2)
-                entering = entering[(gap > half).all(axis=1)]
+            bands = _edge_bands(source, t, roi_size)
+            if band_noise_known is None:  # once per full detection: a median of every pixel
+                band_noise_known = [band_noise(b, sigma=sigma) for b, _, _ in bands]
+            entering = _entering(bands, band_noise_known, roi_size, band_threshold, sigma)
+            entering = entering[_new(entering, xy, half)]
             if len(entering):
                 extra, _, _, extra_edge = _fit_centred(
                     source, t, entering, roi_size, method, readnoise, None
                 )
-                keep = extra.converged
+                # a maximum on the wing of a tracked spot fits that spot
+                keep = extra.converged & _new(extra.params[:, :2], xy, half)
                 fit = FitResult(
                     *(np.concatenate([a, b[keep]]) for a, b in zip(fit, extra, strict=True))
                 )
                 edge = np.concatenate([edge, extra_edge[keep]])
-                guess = np.concatenate([guess, np.full((int(keep.sum()), 2), np.nan)])
             tracked.append((t, fit, edge, _close_pairs(fit.params[:, :2], half)))
             previous = np.concatenate(
                 [current, np.full((len(fit.params) - len(current), 2), np.nan)]
@@ -241,20 +264,28 @@ def localize_tracked(
             continue
         table = full_frame(t)
         tables.append(table)
+        band_noise_known = None
         good = table[table["converged"]]
         found = good[["x", "y"]].to_numpy()
         previous = _history(found, previous, current, half)
         current, params = found, good[["x", "y", "amplitude", "background", "wx", "wy", "rho"]]
         params = params.to_numpy()
-    for t, fit, edge, close in tracked:
-        table = result_table(fit)
-        table.insert(0, "frame", t)
-        table["snr"] = np.nan
-        table["edge"] = edge
-        table["close_pair"] = close
-        tables.append(table)
+    if tracked:
+        tables.append(_tracked_table(tracked))
     table = pd.concat(tables, ignore_index=True)
     return table.sort_values("frame", kind="stable", ignore_index=True)
+
+
+def _tracked_table(tracked: list[tuple[int, FitResult, np.ndarray, np.ndarray]]) -> pd.DataFrame:
+    """One table of the rows fitted from predictions: (frame, fit, edge, close_pair) per frame."""
+    fits = (f for _, f, _, _ in tracked)
+    fit = FitResult(*(np.concatenate(parts) for parts in zip(*fits, strict=True)))
+    frame = np.concatenate([np.full(len(f.params), t) for t, f, _, _ in tracked])
+    return result_table(
+        fit, frame=frame, snr=np.full(len(frame), np.nan),
+        edge=np.concatenate([e for _, _, e, _ in tracked]),
+        close_pair=np.concatenate([c for _, _, _, c in tracked]),
+    )  # fmt: skip
 
 
 def _history(

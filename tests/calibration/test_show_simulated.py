@@ -8,9 +8,12 @@ curvature is symmetric about the field centre: a random planar part of the field
 indistinguishable from substrate tilt, for this method and any other that levels by best focus.
 """
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from latentz.calibration.pipeline import calibrate
@@ -48,33 +51,85 @@ def sim():
     return ds, cal, ds.truth.iloc[idx].reset_index(drop=True), dist
 
 
-def _focus_error(sim):
-    """z_f against the optics: the simulator's aberration map puts each particle's best focus
-    (the peak of its noise-free image, from the pupil function) at the piezo position
-    ``z_focus_nm``; the calibration finds z_f at the peak of the fitted amplitude A(z) of noisy
-    images (the paper's definition)."""
+def _gaussian_amplitude(image: np.ndarray, start: np.ndarray, readnoise: float) -> np.ndarray:
+    """Parameters (x, y, A, B, wx, wy, ρ) of eq. 1 fitted to a noise-free image (photoelectrons)
+    by Poisson maximum likelihood with the read noise as in the calibration's fit
+    (``d + s² ~ Poisson(μ + s²)``), with scipy: least squares on the deviance residuals."""
+    rows, cols = np.indices(image.shape, dtype=float)
+    data = image + readnoise**2
+
+    def residuals(p):
+        dx, dy = (cols - p[0]) / p[4], (rows - p[1]) / p[5]
+        q = (dx**2 + dy**2 - 2 * p[6] * dx * dy) / (2 * (1 - p[6] ** 2))
+        mu = p[2] * np.exp(-q) + p[3] + readnoise**2
+        deviance = 2 * (data * np.log(data / mu) - (data - mu))
+        return (np.sign(data - mu) * np.sqrt(np.maximum(deviance, 0.0))).ravel()
+
+    bounds = ([0, 0, 0, 0, 0.3, 0.3, -0.95], [ROI, ROI, np.inf, np.inf, ROI, ROI, 0.95])
+    return least_squares(residuals, start, bounds=bounds, x_scale="jac", xtol=1e-10).x
+
+
+def _gaussian_focus_nm(ds, particle: pd.Series) -> float:
+    """The paper's best focus from the optics, without latentz's fitter: the piezo z at which the
+    amplitude A of eq. 1, fitted by scipy to the simulator's noise-free images of this particle
+    (its field position, diameter and photons, on a ROI x ROI patch), peaks. A is sampled every
+    40 nm from 300 nm below to 140 nm above the brightest-pixel focus, and its maximum refined
+    by a parabola through the five samples around it."""
+    coef = ds.aberrations.at(np.array([particle.field_x]), np.array([particle.field_y]))
+    wave = np.tensordot(coef.reshape(1, -1), ds.optics.zernike_basis(ds.aberrations.modes), 1)
+    defocus = particle.focus_defocus_nm + np.arange(-300.0, 141.0, 40.0)
+    centre = np.tile([ROI // 2, ROI // 2], (defocus.size, 1)).astype(float)
+    images = ds.optics.render_batch(wave, defocus, centre, (ROI, ROI), particle.diameter_nm)
+    start = np.array([ROI // 2, ROI // 2, 1.0, ds.background, 3.0, 3.0, 0.0])
+    amplitude = []
+    for image in images * particle.photons + ds.background:
+        start[2] = image.max() - ds.background
+        start = _gaussian_amplitude(image, start, ds.camera.readnoise)
+        amplitude.append(start[2])
+    k = int(np.argmax(amplitude))
+    assert 2 <= k <= defocus.size - 3, "the amplitude peak must lie inside the scanned range"
+    c = np.polyfit(defocus[k - 2 : k + 3] - defocus[k], amplitude[k - 2 : k + 3], 2)
+    return defocus[k] - c[1] / (2 * c[0]) - particle.z_nm  # defocus -> piezo z
+
+
+@pytest.fixture(scope="module")
+def focus_error(sim):
+    """z_f minus the optics' best focus for 40 good particles drawn at random over the field.
+
+    The truth is the paper's definition (the peak of the fitted amplitude A(z), Fig. 2d), from
+    noise-free images and a fit that is not latentz's. It is not the simulator's ``z_focus_nm``
+    (the peak of the brightest pixel), which lies about 60 nm above it for this aberration map:
+    primary spherical aberration (Z11 = 12 nm RMS) makes the image asymmetric through focus, and
+    the plane where the central pixel is brightest (the most intense core) is not the plane where
+    the Gaussian that best fits the whole spot, halo included, is highest. Measured on noise-free
+    images: 0 nm without Z11, -50 nm with Z11 = +12 nm at the field centre (1 µm particle; -80 nm
+    for a point), +50 nm with Z11 = -12 nm; -50 to -65 nm over this field; the brightest pixel
+    also moves with the particle's sub-pixel position (up to 43 nm), A's peak by < 0.5 nm."""
     ds, cal, truth, dist = sim
-    good = ~truth["defective"].to_numpy() & (dist < 1.0) & ~cal.culled
-    err = cal.particles["z_f"].to_numpy()[good] - truth["z_focus_nm"].to_numpy()[good]
-    print(f"z_f − optical best focus: mean {err.mean():.1f} nm, SD {err.std():.1f} nm")
+    good = np.flatnonzero(~truth["defective"].to_numpy() & (dist < 1.0) & ~cal.culled)
+    chosen = np.random.default_rng(0).choice(good, 40, replace=False)
+    optical = np.array([_gaussian_focus_nm(ds, truth.iloc[i]) for i in chosen])
+    err = cal.particles["z_f"].to_numpy()[chosen] - optical
+    brightest = truth["z_focus_nm"].to_numpy()[chosen] - optical
+    print(
+        f"z_f − best focus (fitted A): mean {err.mean():+.1f} nm, SD {err.std():.1f} nm; "
+        f"brightest-pixel focus − fitted-A focus: mean {brightest.mean():+.1f} nm"
+    )
     return err
 
 
-def test_focus_follows_the_optical_best_focus_across_the_field(sim):
+@pytest.mark.slow
+def test_focus_follows_the_optical_best_focus_across_the_field(focus_error):
     # the field dependence of best focus (which tilt and field curvature are made of): every
     # particle's z_f minus the optics' best focus has an SD within the paper's 10 nm
-    assert np.std(_focus_error(sim)) <= 10.0
+    assert np.std(focus_error) <= 10.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known gap: the peak of the fitted Gaussian amplitude (the paper's z_f) lies about "
-    "60 nm below the peak of the noise-free image's brightest pixel (the simulator's best "
-    "focus) for this aberration map: measured -59.9 ± 8.4 nm over the good particles",
-)
-def test_focus_within_10_nm_of_the_optical_best_focus(sim):
-    err = _focus_error(sim)
-    assert np.mean(np.abs(err) <= 10.0) >= 0.95
+@pytest.mark.slow
+def test_focus_within_10_nm_of_the_optical_best_focus(focus_error):
+    # a z_f 10 nm off, for all particles (a bias) or each its own way (scatter), gives an RMS of
+    # at least 10 nm; the shot noise of 5e5-photon particles gives about 4 nm
+    assert np.sqrt(np.mean(focus_error**2)) <= 10.0
 
 
 def test_tilt_of_2_mrad_is_recovered_within_5_percent(sim):
@@ -190,21 +245,12 @@ def _independent_emitters(ds, cal, *, diameter_nm, seed):
                 "it, short of the 0.8x the test allows (docs/accuracy.md)",
             ),
         ),
-        pytest.param(
-            0.0,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="known gap: a point emitter's image changes with z unlike a 1 µm "
-                "particle's (paper Supp. Fig. 9), so a particle calibration does not transfer: "
-                "measured z RMSE 189 nm, bias +66 nm, against a reported 13.5 nm",
-            ),
-        ),
     ],
-    ids=["particles", "point-emitters"],
+    ids=["particles"],
 )
 def test_independent_emitters_are_localized_within_their_uncertainty(sim, diameter_nm):
     """Emitters independent of the calibration particles (other positions, 0.3x the
-    brightness, and point emitters) localized with the intensity-independent ρ_w."""
+    brightness) localized with the intensity-independent ρ_w. Point emitters: the next test."""
     from latentz.calibration.pipeline import calibrate_traces
 
     ds, cal, _, _ = sim
@@ -223,6 +269,51 @@ def test_independent_emitters_are_localized_within_their_uncertainty(sim, diamet
     # 36+ errors: their RMS is within ~25 % of its expectation (3 standard errors); the
     # reported uncertainty must account for it
     assert rmse <= 1.25 * reported
+
+
+@pytest.mark.slow
+def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
+    """A calibration made with 1 µm particles does not localize point emitters (paper Supp.
+    Fig. 9: a particle's image is the PSF blurred by the particle, so its shape changes with z
+    unlike a point's; measured z RMSE ~190 nm against ~14 nm reported). latentz must say so:
+    every point emitter inconsistent with the calibration curves, one warning naming emitters
+    smaller than the calibration particles, nothing good; while emitters like the calibration
+    particles (1 µm, at other places and brightness) stay consistent."""
+    from latentz.calibration.pipeline import calibrate_traces
+    from latentz.quality import CHI2_LIMIT, assess, check_calibration_fits
+
+    ds, cal, _, _ = sim
+    rho_w = calibrate_traces(cal.traces, camera=cal.camera, shape="rho_w", field_model="nearest")
+
+    def localized(diameter_nm):
+        spots, z_true = _independent_emitters(ds, rho_w, diameter_nm=diameter_nm, seed=11)
+        spots = spots.drop(columns="z_nm").assign(frame=np.arange(len(spots)))
+        return assess(rho_w.apply(spots), rho_w, roi_size=ROI), z_true
+
+    points, z_true = localized(0.0)
+    err = points["z_nm"].to_numpy() - z_true
+    rmse = np.sqrt(np.nanmean(err**2))
+    reported = np.sqrt(np.nanmean(points["z_err_nm"].to_numpy() ** 2))
+    chi2 = points["consistency_chi2"].to_numpy()
+    print(
+        f"point emitters: z RMSE {rmse:.0f} nm, reported {reported:.1f} nm; consistency χ² "
+        f"{np.nanmin(chi2):.0f}–{np.nanmax(chi2):.0f} (limit {CHI2_LIMIT})"
+    )
+    # against truth: their errors are far outside the reported uncertainty (5x: beyond the 2.9x
+    # by which the error model misses for 1 µm emitters, the xfail above), so none may be good
+    assert rmse > 5 * reported
+    located = np.isfinite(chi2)
+    assert located.mean() >= 0.9 and (chi2[located] > CHI2_LIMIT).all()
+    with pytest.warns(UserWarning, match="emitters smaller than the calibration particles"):
+        checked = check_calibration_fits(points)
+    assert not checked["good"].any()
+
+    particles, _ = localized(1000.0)
+    # emitters like the calibration particles: χ² beyond its 99.9 % point is rare
+    assert np.mean(particles["consistency_chi2"] <= CHI2_LIMIT) >= 0.95
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        check_calibration_fits(particles)
 
 
 def test_auto_shapes_on_the_pi_over_4_microscope(sim):

@@ -128,3 +128,54 @@ def test_fast_log_factorial_matches_lgamma():
     want = np.array([math.lgamma(v + 1.0) for v in values])
     # Stirling's series truncated at z^-7 (error < 1e-11) plus float64 rounding of large values
     np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "natural",
+    [
+        (7.3, 6.8, 500.0, 20.0, 1.4, 2.1, 0.5),  # every row by the recurrence
+        (0.2, 14.6, 500.0, 20.0, 0.3, 0.35, -0.9),  # narrow, in a corner: rows computed directly
+        (0.0, 7.0, 500.0, 20.0, 0.443, 0.35, 0.0),  # rows 0-2 and 12-14 directly, the rest not
+    ],
+)
+def test_kernel_model_and_fisher_matrix_are_eq1s(natural):
+    shape = (15, 15)
+    theta = np.array([natural])
+    mu, jac = model_and_jacobian(theta, shape)
+    internal = np.array([*natural[:4], math.log(natural[4]), math.log(natural[5])])
+    internal = np.append(internal, math.atanh(natural[6]))
+    roi = np.random.default_rng(5).poisson(mu[0]).reshape(shape).astype(float)
+    mu_k, w_k = np.empty(mu.size), np.empty(mu.size)
+    hess, grad = np.empty((7, 7)), np.empty(7)
+    obj = _kernels._evaluate(
+        roi, internal, _kernels.MLE, 0.0, 1.0, mu_k, w_k, mu_k, w_k, hess, grad
+    )
+    assert obj == (0.0, 0.0)  # the MLE objective is the deviance change from the reference
+    np.testing.assert_allclose(mu_k, mu[0], rtol=1e-12)
+    weights = 1.0 / mu[0]
+    fisher = jac[0].T @ (weights[:, None] * jac[0])
+    score = jac[0].T @ (roi.ravel() * weights - 1.0)
+    # float64 rounding, relative to the largest term (entries that vanish by symmetry included)
+    np.testing.assert_allclose(hess, fisher, rtol=1e-10, atol=1e-12 * np.abs(fisher).max())
+    np.testing.assert_allclose(grad, score, rtol=1e-9, atol=1e-12 * np.abs(jac).max() * roi.max())
+
+
+def test_kernel_log_likelihood_and_log_ratio_match_lgamma_and_log():
+    rng = np.random.default_rng(3)
+    # counts from empty to 10^6 (the log of the product of 300 large counts overflows float64)
+    roi = np.concatenate([[0.0, -1.0, 0.3, 5.0, 7.99, 8.0], 10 ** rng.uniform(0, 6, 300)])
+    roi = roi.reshape(1, -1)
+    mu = roi.ravel() * rng.uniform(0.5, 2.0, roi.size) + 1.0
+    s2 = 2.25
+    m, d = mu + s2, roi.ravel() + s2
+    want = sum(
+        dk * math.log(mk) - mk - math.lgamma(dk + 1.0) if dk > 0 else -mk
+        for dk, mk in zip(d, m, strict=True)
+    )
+    got = _kernels._log_likelihood(roi, mu, 1.0 / m, s2)
+    # Stirling's series truncated at d^-7 (error < 1e-11 per pixel) and float64 rounding
+    assert abs(got - want) < 1e-12 * np.sum(np.abs(d * np.log(m))) + 1e-9
+    old = 10 ** rng.uniform(-2, 6, 2000)
+    new = old * np.exp(rng.uniform(-0.5, 0.5, old.size))
+    ratio = np.array([_kernels._log_ratio(a, b, 1.0 / b) for a, b in zip(new, old, strict=True)])
+    np.testing.assert_allclose(ratio, np.log(new / old), rtol=1e-12, atol=1e-15)

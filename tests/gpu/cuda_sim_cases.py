@@ -3,7 +3,8 @@
 Run as ``NUMBA_ENABLE_CUDASIM=1 python cuda_sim_cases.py OUT_DIR`` (test_cuda_simulator.py does):
 the simulator must be switched on before ``numba.cuda`` is first imported, so it runs in a process
 of its own and leaves the rest of the test session on the real CPU path. It writes
-``fits.npz`` (per method, both devices and the truth) and ``spots_{cpu,cuda}.parquet``.
+``fits.npz`` (per method, both devices and the truth), ``spots_{cpu,cuda}.parquet`` and
+``given_noise_{cpu,cuda}.npz`` (detections with a given noise level).
 The simulator runs every GPU thread as Python, so the inputs are small.
 """
 
@@ -17,6 +18,8 @@ import pandas as pd
 assert os.environ.get("NUMBA_ENABLE_CUDASIM") == "1", "run with NUMBA_ENABLE_CUDASIM=1"
 
 import latentz.fit._cuda as fit_cuda  # noqa: E402
+from latentz._detect_cuda import detect_arrays_cuda  # noqa: E402
+from latentz.detect import band_noise, detect_arrays  # noqa: E402
 from latentz.fit import amplitude_of, fit_arrays, render_rois  # noqa: E402
 from latentz.localization import localize  # noqa: E402
 
@@ -109,6 +112,10 @@ def main(out_dir: Path) -> None:
     for device in ("cpu", "cuda"):
         spots = localize(frames, roi_size=7, device=device, scheduler="synchronous")
         spots.to_parquet(out_dir / f"spots_{device}.parquet")
+    noise = 1.5 * band_noise(frames)  # a given noise, as tracking mode passes for edge bands
+    for device, detector in (("cpu", detect_arrays), ("cuda", detect_arrays_cuda)):
+        found = detector(frames, roi_size=7, noise=noise)
+        np.savez(out_dir / f"given_noise_{device}.npz", **found._asdict())
 
 
 if __name__ == "__main__":

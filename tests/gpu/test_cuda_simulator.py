@@ -26,7 +26,8 @@ FITS = ("mle_7x7", "wlsq_7x7", "lsq_7x7", "mle_9x11")
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory):
+def sim_out(tmp_path_factory):
+    """The folder of cuda_sim_cases.py's outputs, run once under the simulator."""
     pytest.importorskip(
         "numba_cuda", reason="numba-cuda (the `gpu`/`test` extra) runs the CUDA simulator"
     )
@@ -42,8 +43,13 @@ def results(tmp_path_factory):
         [sys.executable, str(script), str(out)], env=env, capture_output=True, text=True
     )
     assert run.returncode == 0, run.stderr[-3000:]
-    fits = dict(np.load(out / "fits.npz"))
-    spots = {d: pd.read_parquet(out / f"spots_{d}.parquet") for d in ("cpu", "cuda")}
+    return out
+
+
+@pytest.fixture(scope="module")
+def results(sim_out):
+    fits = dict(np.load(sim_out / "fits.npz"))
+    spots = {d: pd.read_parquet(sim_out / f"spots_{d}.parquet") for d in ("cpu", "cuda")}
     return fits, spots
 
 
@@ -95,3 +101,11 @@ def test_cuda_localize_finds_the_same_spots(results):
     np.testing.assert_allclose(gpu["snr"], cpu["snr"], rtol=1e-5)
     assert np.abs(gpu[["x", "y"]].to_numpy() - cpu[["x", "y"]].to_numpy()).max() <= POSITION_TOL_PX
     assert (gpu["converged"] == cpu["converged"]).all()
+
+
+def test_cuda_detects_with_a_given_noise_as_the_cpu(sim_out):
+    cpu, gpu = (dict(np.load(sim_out / f"given_noise_{d}.npz")) for d in ("cpu", "cuda"))
+    assert len(cpu["row"]) >= 4
+    for name in ("frame", "row", "col", "edge", "close_pair"):
+        np.testing.assert_array_equal(gpu[name], cpu[name])
+    np.testing.assert_allclose(gpu["snr"], cpu["snr"], rtol=1e-5)

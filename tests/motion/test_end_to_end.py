@@ -8,6 +8,7 @@ from scipy.stats import norm
 
 from latentz.calibration import calibrate
 from latentz.localization import localize
+from latentz.motion import motion_uncertainty
 from latentz.pipeline import track_tables
 
 DOF = ["gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm"]
@@ -20,13 +21,16 @@ def test_six_degrees_of_freedom_agree_with_truth_within_uncertainty(small_micros
     locs = cal.apply(spots[spots["converged"]])
     assert locs["in_range"].mean() > 0.9
     tables = track_tables(locs, n_sim=2000, seed=1)
-    motion, sigma = tables["motion"], tables["uncertainty"]["sigma"]
+    motion, tracks = tables["motion"], tables["tracks"]
+    # each cycle against its own Monte Carlo standard deviation
+    sigma = motion_uncertainty(tracks, motion, n_sim=2000, seed=1, per_transition=True)
     # the truth about the same point of the body as the measurement (the mean of all positions)
-    both = motion.merge(gear.motion_of(tables["tracks"]), on="frame", suffixes=("", "_true"))
+    both = motion.merge(gear.motion_of(tracks), on="frame", suffixes=("", "_true"))
     assert len(both) == gear.frames.shape[0] - 1
+    both = both.merge(sigma, on="frame", suffixes=("", "_sigma"))
     err = np.column_stack([both[d] - both[f"{d}_true"] for d in DOF])
     err[:, 2] = (err[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    z_scores = err / sigma[DOF].to_numpy()
+    z_scores = err / both[[f"{d}_sigma" for d in DOF]].to_numpy()
     # 5 cycles per degree of freedom: every error within the 0.1 % family-wise limit for 30
     # unit normals (4.15 sigma), each RMS z-score below 2 (RMS of 5 unit normals exceeds 2 with
     # probability ~0.1 %); the 30 pooled errors fall within 1 sigma 68 ± 17 % of the time

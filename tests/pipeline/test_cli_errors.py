@@ -142,11 +142,12 @@ def test_ctrl_c_says_how_to_resume(tmp_path, small_microscope, small_calibration
 
 
 @pytest.mark.realdata
-def test_z_step_ten_times_too_small_is_one_warning_line(tmp_path):
-    # Ten times too large cannot be told from the widths alone: the widths of this bead grow
-    # by 0.35 nm per nm of z, those of the simulated paper microscope by 0.08, so a step 10x
-    # too large here (0.035) lies within a factor 2.3 of a real microscope.
-    factor = 0.1
+@pytest.mark.parametrize("factor", [0.1, 1.0, 10.0])
+def test_z_step_ten_times_off_is_one_warning_line(tmp_path, factor):
+    # The widths' depth of focus over their squared in-focus width, d / sigma0^2, is 0.017 per
+    # nm on this bead (100 nm pixels); a step 10x off makes it 0.0017 or 0.17, outside the
+    # 0.0034..0.064 that optics of any immersion and visible wavelength allow; the right step
+    # (factor 1) gives no warning.
     stack, _ = fit3d_bead()
     path = tmp_path / "bead.tif"
     tifffile.imwrite(path, stack[::2].astype(np.uint16))
@@ -155,8 +156,13 @@ def test_z_step_ten_times_too_small_is_one_warning_line(tmp_path):
         "--gain", 0.1, "--pixel-size-nm", 100, "--quiet", "--out", tmp_path / "c.h5",
     )  # fmt: skip
     lines = result.stderr.splitlines()
-    warned = {line for line in lines if line.startswith("latentz: warning: z step 2 nm")}
-    assert len(warned) == 1 and "that is a z step of" in warned.pop()
+    warned = {
+        line for line in lines if line.startswith(f"latentz: warning: z step {20 * factor:g} nm")
+    }
+    if factor == 1.0:
+        assert not warned and not any("z step" in line for line in lines)
+    else:
+        assert len(warned) == 1 and "that is a z step of" in warned.pop()
     assert "Traceback" not in result.stderr
 
 

@@ -34,13 +34,17 @@ def test_pixel_size_mismatch_warns():
 
 
 def test_z_step_that_the_widths_contradict_warns():
-    # widths changing by 100 nm per nm of z: the step was given in µm (0.05) for nm (50)
-    with pytest.warns(LatentzWarning, match=r"z step 0.05 nm .* 100 nm per nm .* 1.67..250 nm"):
-        check_z_step(0.05, 100.0)
-    with pytest.warns(LatentzWarning, match=r"z step 500 nm .* 0.01 nm per nm"):
-        check_z_step(500.0, 0.01)
-    silent(check_z_step, 50.0, 0.12)  # NA 0.55 in air, 1 µm particles
-    silent(check_z_step, 10.0, 0.27)  # NA 1.49 oil, SMLM 2016 beads
+    # d / sigma0^2 = 0.0121 per nm on latentz's simulator (NA 0.55 in air, 1 µm particles):
+    # a step given in µm (0.05) for nm (50) makes it 1000x smaller, one 10x too large 10x larger
+    with pytest.warns(LatentzWarning, match=r"z step 0.05 nm .* 1.21e-05 σ0² .* 13.8..263 nm"):
+        check_z_step(0.05, 0.0121e-3)
+    with pytest.warns(LatentzWarning, match=r"z step 500 nm .* 0.121 σ0²"):
+        check_z_step(500.0, 0.121)
+    with pytest.warns(LatentzWarning, match=r"z step 1 nm .* 0.0009 σ0²"):
+        check_z_step(1.0, 0.0009)  # the SMLM 2016 beads with a step 10x too small
+    silent(check_z_step, 50.0, 0.0121)  # NA 0.55 in air, 1 µm particles
+    silent(check_z_step, 10.0, 0.0090)  # SMLM 2016 beads (the lowest measured)
+    silent(check_z_step, 10.0, 0.0170)  # fit3Dcspline bead, 100 nm pixels (the highest)
     silent(check_z_step, 10.0, float("nan"))  # nothing to judge by
 
 
@@ -51,7 +55,7 @@ def test_calibrate_warns_about_a_z_step_in_the_wrong_unit(small_microscope):
     with warnings.catch_warnings():
         warnings.simplefilter("error", LatentzWarning)
         calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
-    with pytest.warns(LatentzWarning, match=r"z step 0.1 nm makes the spot widths change"):
+    with pytest.warns(LatentzWarning, match=r"z step 0.1 nm makes the spot widths' depth of focus"):
         try:
             calibrate(
                 list(data.stacks), data.z_nm / 1000, camera=data.camera, field_model="nearest"

@@ -21,6 +21,7 @@ from latentz._shared.validate import check_array, check_choice, check_int, check
 from latentz.calibration.calibration import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
+from latentz.calibration.depth import depth_ratio_per_nm
 from latentz.calibration.local import LocalOptions, fit_local
 from latentz.calibration.roi import MIN_ROI, roi_for_width, roi_limit, widest_spot_px
 from latentz.calibration.shape import SHAPES, astigmatism_angle
@@ -303,7 +304,7 @@ def calibrate_traces(
     neighbours = check_int("neighbours", neighbours, minimum=1)
     if len(traces) == 0:
         raise ValueError("No calibration particles: the traces are empty.")
-    check_z_step(float(np.median(np.diff(traces.z_nm))), _width_rate(traces, camera))
+    check_z_step(float(np.median(np.diff(traces.z_nm))), _depth_ratio(traces, camera))
     theta = None
     if shape in (None, "auto", "auto_A"):
         try:
@@ -426,20 +427,12 @@ def _field_model_for(field_model: str, n_kept: int) -> str:
     return field_model
 
 
-def _width_rate(traces: Traces, camera: Camera) -> float:
-    """Median over particles of the change of the mean fitted width (nm) between its narrowest
-    and widest converged planes, per nm of z between them (NaN if none has two such planes)."""
-    width = np.where(traces["converged"], (traces["wx"] + traces["wy"]) / 2, np.nan)
-    usable = np.sum(np.isfinite(width), axis=1) >= 2
-    if not usable.any():
-        return np.nan
-    width = width[usable]
-    low, high = np.nanargmin(width, axis=1), np.nanargmax(width, axis=1)
-    rows = np.arange(len(width))
-    span = np.abs(traces.z_nm[high] - traces.z_nm[low])
-    change = (width[rows, high] - width[rows, low]) * camera.pixel_size_nm
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return float(np.nanmedian(np.where(span > 0, change / span, np.nan)))
+def _depth_ratio(traces: Traces, camera: Camera) -> float:
+    """Depth of focus over squared in-focus width of the converged spot widths, x and y of each
+    particle (:func:`latentz.calibration.depth.depth_ratio_per_nm`), nm⁻¹."""
+    converged = traces["converged"]
+    widths = [np.where(converged, traces[w], np.nan) * camera.pixel_size_nm for w in ("wx", "wy")]
+    return depth_ratio_per_nm(traces.z_nm, np.stack(widths, axis=1).reshape(-1, traces.z_nm.size))
 
 
 def _field_shape(traces: Traces, given: Any) -> list[int]:

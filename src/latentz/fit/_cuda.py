@@ -31,9 +31,16 @@ __all__ = ["fit_batch_cuda"]
 _DEVICE_FUNCTIONS = (
     "log_factorial",
     "_start",
+    "_row_start",
+    "_atanh_series",
+    "_log_ratio",
+    "_log_likelihood",
+    "_chi_square",
+    "_far_deviance",
     "_evaluate",
     "_cholesky",
     "_solve",
+    "_inverse_diagonal",
     "_finish",
     "_fit_one",
     "fit_roi",
@@ -70,7 +77,7 @@ def _fit_kernel(npix: int) -> Any:
     ):  # fmt: skip
         k = cuda.grid(1)
         if k < rois.shape[0]:
-            scratch = cuda.local.array((5, npix), float64)
+            scratch = cuda.local.array((4, npix), float64)
             vecs = cuda.local.array((7, n_params), float64)
             mats = cuda.local.array((3, n_params, n_params), float64)
             fit_roi(

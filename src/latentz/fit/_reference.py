@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from latentz.fit._kernels import _STEP_FACTOR, LSQ, MLE, WLSQ
+from latentz.fit._kernels import LSQ, MLE, WLSQ
 from latentz.fit._model import model_and_jacobian, moment_start
 
 _LAM0 = 1e-3
@@ -59,7 +59,7 @@ def _objective(d, p, shape, method, s2, scale, mu_ref):
     return obj_ref, obj_new, hess, grad, mu
 
 
-def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init=None):
+def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-2, init=None):
     """Fit each ROI; return (params, errors, loglik, chi2, iterations, converged) as the kernel."""
     n, h, w = rois.shape
     shape = (h, w)
@@ -74,7 +74,7 @@ def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init
         scale = 1.0 / max(np.mean(d + s2), 1.0) if method == LSQ else 0.0
         _, obj, hess, grad, mu_ref = _objective(d, p, shape, method, s2, scale, None)
         converged, lam, iters = False, _LAM0, 0
-        limit = tol * d.size
+        limit, last_step = tol * tol, 0.0
         while math.isfinite(obj) and iters < max_iter:
             iters += 1
             damped = hess + np.diag(np.diag(hess) * lam + 1e-12)
@@ -90,6 +90,9 @@ def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init
             if grad_delta <= limit and lam <= 1e-2:
                 converged = True
                 break
+            if lam <= 1e-2 and grad_delta <= 1.0 and grad_delta**2 <= limit * last_step:
+                p, converged = np.clip(p + delta, lower, upper), True  # the free last step
+                break
             p_try = np.clip(p + delta, lower, upper)
             obj_try, obj_try_w, h_try, g_try, mu_try = _objective(
                 d, p_try, shape, method, s2, scale, mu_ref
@@ -97,16 +100,19 @@ def fit_reference(rois, *, method, s2, lower, upper, max_iter=50, tol=1e-6, init
             if obj_try < obj:
                 decrease = obj - obj_try
                 p, hess, grad, mu_ref, obj = p_try, h_try, g_try, mu_try, obj_try_w
-                small_step = grad_delta <= _STEP_FACTOR * limit and lam <= 1e-2
+                last_step = grad_delta if lam <= 1e-2 else 0.0
                 lam = max(lam * 0.1, 1e-7)
-                if decrease <= limit or small_step:
+                if decrease <= limit:
                     converged = True
                     break
             else:
                 lam *= 10.0
                 if lam > _LAM_MAX:
                     break
+        # the bounds come from the last evaluated iterate's information (LSQ: Fisher's at p)
         _, _, fisher, _, mu = _objective(d, p, shape, MLE, s2, scale, None)
+        if method != LSQ and hess is not None:
+            fisher = hess
         theta = _natural(p)
         inner = (p <= lower) | (p >= upper)
         inner[3] = False

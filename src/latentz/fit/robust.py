@@ -42,17 +42,14 @@ def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
     info, observed, lower, half = mats[0], mats[1], mats[2], mats[3]
     p[0], p[1], p[2], p[3] = natural[0], natural[1], natural[2], natural[3]
     p[4], p[5], p[6] = math.log(natural[4]), math.log(natural[5]), math.atanh(natural[6])
-    for i in range(h):
-        for j in range(w):
-            ds = roi[i, j] + s2
-            scratch[2, i * w + j] = 1.0 / ds if ds > 0.0 else 0.0
-    _evaluate(roi, p, MLE, s2, 1.0, scratch[2], scratch[1], scratch[0], scratch[1], info, score)
+    # the model is its own reference (mu_ref = mu_out): only the score and information are used
+    _evaluate(roi, p, MLE, s2, 1.0, scratch[0], scratch[1], scratch[0], scratch[1], info, score)
     for k in range(N_PARAMS):
         for m in range(N_PARAMS):
             p_try[m] = p[m]
         step = _STEP * max(abs(p[k]), 1.0)
         p_try[k] = p[k] + step
-        _evaluate(roi, p_try, MLE, s2, 1.0, scratch[2], scratch[1], scratch[0], scratch[1],
+        _evaluate(roi, p_try, MLE, s2, 1.0, scratch[0], scratch[1], scratch[0], scratch[1],
                   lower, score_try)  # fmt: skip
         for m in range(N_PARAMS):
             observed[m, k] = -(score_try[m] - score[m]) / step
@@ -88,7 +85,7 @@ def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
 def _sandwich_batch(rois, params, s2, n_chunks, out):
     n, h, w = rois.shape
     for c in numba.prange(n_chunks):
-        scratch = np.empty((3, h * w))
+        scratch = np.empty((2, h * w))
         vecs = np.empty((6, N_PARAMS))
         mats = np.empty((4, N_PARAMS, N_PARAMS))
         for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):

@@ -4,8 +4,8 @@ Axial convention. ``z_nm`` of an emitter is its height in the sample, relative t
 focal plane (the focal plane at the field centre when the piezo is at 0, without aberrations). The
 piezo displaces the sample along +z relative to the objective, so in a plane taken at piezo
 position ``z_piezo`` the emitter's defocus is ``defocus_nm = z_nm + z_piezo``. With aberrations,
-the image amplitude peaks at ``defocus_nm = focus_defocus_nm(x, y)`` (field curvature and spherical
-aberration), so a calibration particle is in best focus at the piezo position
+the image's brightest pixel peaks at ``defocus_nm = focus_defocus_nm(x, y)`` (field curvature and
+spherical aberration), so a calibration particle is in best focus at the piezo position
 ``z_focus_nm = focus_defocus_nm − z_nm``, and an emitter's height above the local focal surface is
 ``z_from_focus_nm = defocus_nm − focus_defocus_nm``.
 """
@@ -123,9 +123,10 @@ class CalibrationDataset:
     truth : DataFrame
         One row per particle: ``particle, stack, x, y`` (stack pixels), ``field_x, field_y``
         (full-field pixels), ``z_surface_nm`` (substrate under the particle), ``z_nm`` (particle
-        centre), ``focus_defocus_nm``, ``z_focus_nm`` (piezo position of best focus: amplitude
-        peak of the noise-free image), ``diameter_nm``, ``photons``, ``defect``
-        ('none', 'dimer', 'large') and ``defective``.
+        centre), ``focus_defocus_nm``, ``z_focus_nm`` (piezo position of best focus: the peak
+        of the noise-free image's brightest pixel; the paper's z_f, the peak of the fitted
+        Gaussian amplitude, differs from it with spherical aberration: docs/method.md),
+        ``diameter_nm``, ``photons``, ``defect`` ('none', 'dimer', 'large') and ``defective``.
     """
 
     stacks: tuple[np.ndarray, ...]
