@@ -11,11 +11,15 @@ from latentz.camera import Camera
 from latentz.fit import FIT_COLUMNS, METHODS, PARAMS, crlb, fit_arrays, fit_rois, render_rois
 from latentz.fit._reference import fit_reference
 from latentz.fit.api import parameter_bounds
+from latentz.fit.robust import misspecified_errors
 
 DESIGN_COLUMNS = [
     "x", "y", "amplitude", "background", "wx", "wy", "rho", "photons",
     "x_err", "y_err", "amplitude_err", "background_err", "wx_err", "wy_err", "rho_err",
     "loglik", "chi2", "iterations", "converged",
+    # added after the design's list: the correlations of the shape's parameters
+    "amplitude_wx_corr", "amplitude_wy_corr", "amplitude_rho_corr", "wx_wy_corr", "wx_rho_corr",
+    "wy_rho_corr",
 ]  # fmt: skip
 
 
@@ -56,7 +60,12 @@ def test_kernel_matches_its_numpy_twin(method):
     got = fit_arrays(rois, method=method, readnoise=1.5)
     lower, upper = parameter_bounds((9, 9), 1.5)
     want = fit_reference(rois, method=METHODS[method], s2=1.5**2, lower=lower, upper=upper)
-    for name, a, b in zip(got._fields, got, want, strict=True):
+    if method != "lsq":  # the reported errors are the sandwich's, the bound where it fails
+        sandwich = misspecified_errors(rois, want[0], readnoise=1.5)
+        usable = np.all(np.isfinite(sandwich), axis=1)
+        assert usable.sum() >= 35
+        want = (want[0], np.where(usable[:, None], sandwich, want[1]), *want[2:])
+    for name, a, b in zip(got._fields[:-1], got[:-1], want, strict=True):
         np.testing.assert_allclose(
             np.asarray(a, float), np.asarray(b, float), rtol=1e-8, atol=1e-8, err_msg=name
         )
@@ -177,6 +186,17 @@ def test_iterations_are_few_from_the_moment_start():
     assert result.converged.all()
     assert np.median(result.iterations) <= 6
     assert math.isclose(float(pd.Series(result.iterations).max()), result.iterations.max())
+
+
+def test_crlb_errors_on_request_and_a_clear_error_for_another_choice():
+    table = truth_table(20, 11, seed=31)
+    rois = noisy_rois(table, 11, seed=32)
+    fit = fit_arrays(rois, errors="crlb", tol=1e-8)  # the bound at the last iterate
+    ok = fit.converged
+    np.testing.assert_allclose(fit.errors[ok], crlb(fit.params[ok], shape=11), rtol=1e-6)
+    assert np.isnan(fit.correlations).all()
+    with pytest.raises(ValueError, match="errors"):
+        fit_arrays(rois, errors="fisher")
 
 
 def test_the_default_tol_ends_within_about_a_hundredth_of_a_bound_of_the_optimum():

@@ -63,7 +63,8 @@ def test_cuda_fits_match_the_cpu(results, case):
     assert both.sum() >= 0.9 * both.size  # the comparison covers nearly every ROI
     shift = np.abs(cpu["params"][both, :2] - gpu["params"][both, :2])
     assert shift.max() <= POSITION_TOL_PX
-    # the Cramér–Rao errors, the likelihood and the iterations are the same computation
+    # the errors (the sandwich, computed on the CPU after either fit), the likelihood and the
+    # iterations are the same computation
     np.testing.assert_allclose(gpu["errors"][both], cpu["errors"][both], rtol=1e-6)
     np.testing.assert_allclose(gpu["loglik"][both], cpu["loglik"][both], rtol=1e-9)
     assert np.mean(gpu["iterations"] == cpu["iterations"]) >= SAME_FLAG_FRACTION

@@ -20,12 +20,13 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
-from latentz.calibration.errors import combine, covariance_factor, field_sigma
+from latentz.calibration.errors import combine, field_sigma, fit_sigma_s
 from latentz.calibration.local import LocalModels, row_mean
-from latentz.calibration.shape import shape_sigma, shape_value, uses_amplitude
+from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
 from latentz.camera import Camera
+from latentz.fit.api import CORRELATION_COLUMNS
 
 __all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
 
@@ -34,7 +35,7 @@ FIELD_MODELS = ("zernike", "natural", "nearest")
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
 SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
-_ERROR_COLUMNS = ("wx_err", "wy_err", "rho_err", "amplitude_err")
+_ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
 _PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
 
 
@@ -362,6 +363,75 @@ class Calibration:
             self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
         return self._cache[key]
 
+    def _model_sigma(self, axis: str, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
+        its residual σ at that z over the square root of its planes per polynomial parameter."""
+        sigma, count, _ = self._error_model(axis)
+        if axis == "z":
+            order = self.local.shapes[self.shape].inverse.order
+        else:
+            order = (self.local.dx if axis == "x" else self.local.dy).order
+        return _interp_rows(self.local.z_nm, sigma, p, z) * np.sqrt(
+            (order + 1) / np.maximum(count[p], 1)
+        )
+
+    def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
+        field_sigma`), less the local models' part of the held-out errors."""
+        kind = self.field_model
+        table = self.crossval_of(kind)
+        key = f"crossval_model_sigma/{kind}/{axis}"
+        if key not in self._cache:
+            scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
+            rows = table["particle"].to_numpy()
+            self._cache[key] = scale * self._model_sigma(axis, rows, table["z_nm"].to_numpy())
+        return field_sigma(table, kind, axis, z, distance, model_nm=self._cache[key])
+
+    def _locate(self, s: np.ndarray, p: np.ndarray, cols: dict, located: np.ndarray) -> tuple:
+        """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
+        own) and in_range of shape values ``s`` at the spots' positions."""
+        if self.widefield is None:
+            inverse = self.local.shapes[self.shape].inverse[p]
+            in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
+            z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
+            lo, hi = self.z_span_nm[p].T
+            with np.errstate(invalid="ignore"):
+                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
+            return np.where(in_range, z, np.nan), None, in_range
+        # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
+        z, dx_w, dy_w, in_range = self.widefield(
+            np.where(located, cols["x"], np.nan),
+            np.where(located, cols["y"], np.nan),
+            s,
+            iterations=self.options.get("iterations", 0),
+        )
+        return z, {"x": dx_w, "y": dy_w}, in_range & located
+
+    def _dimming_shift(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
+        ref: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """How much brighter-than-the-spot calibration images shift the spots' shape values
+        (:func:`~latentz.calibration.dimming.shape_shift`), from particle ``p``'s refits at the
+        spots' first z; 0 where that is unknown."""
+        from latentz.calibration.dimming import shape_shift
+
+        s2 = self.camera.readnoise**2
+        zq = np.where(np.isfinite(z), z, np.nan)
+
+        def trace_at(name: str) -> np.ndarray:
+            return _interp_rows(self.local.z_nm, self.traces[name], p, zq)
+
+        def shape_of(a, wx, wy, rho):
+            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
+                               amplitude_ref=ref)  # fmt: skip
+
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c_spot = (background + s2) / amplitude
+            c_own = (trace_at("background") + s2) / trace_at("amplitude")
+        shift = shape_shift(shape_of, trace_at, c_spot, c_own)
+        return np.where(np.isfinite(shift), shift, 0.0)
+
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
         if "tree" not in self._cache:
@@ -426,71 +496,48 @@ class Calibration:
             theta=theta,
             amplitude_ref=ref,
         )
-        inverse = model.inverse[p]
-        widefield = self.widefield
-        if widefield is None:
-            in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
-            z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
-            lo, hi = self.z_span_nm[p].T
-            with np.errstate(invalid="ignore"):
-                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
-            z = np.where(in_range, z, np.nan)
-            shifts = None
-        else:  # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
-            z, dx_w, dy_w, in_range = widefield(
-                np.where(located, cols["x"], np.nan),
-                np.where(located, cols["y"], np.nan),
-                s,
-                iterations=self.options.get("iterations", 0),
-            )
-            in_range &= located
-            shifts = {"x": dx_w, "y": dy_w}
-        z_sigma, z_count, z_slope = self._error_model("z")
-        sigma_cal = _interp_rows(self.local.z_nm, z_sigma, p, z)
-        model_part = sigma_cal * np.sqrt((inverse.order + 1) / np.maximum(z_count[p], 1))
+        z, shifts, in_range = self._locate(s, p, cols, located)
+        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+            s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
+                                        z, ref)  # fmt: skip
+            z, shifts, in_range = self._locate(s, p, cols, located)
+        z_slope = self._error_model("z")[2]
+        model_part = self._model_sigma("z", p, z)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
-            errs = tuple(spots[c].to_numpy(dtype=np.float64) for c in _ERROR_COLUMNS)
-            sigma_s = shape_sigma(
+            params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
+            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
+            sigma_s = fit_sigma_s(
                 shape,
-                cols["wx"],
-                cols["wy"],
-                cols["rho"],
-                cols["amplitude"],
-                errs,
+                params,
+                spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64),
+                corr,
+                roi_size=int(self.options.get("roi_size") or 11),
+                readnoise=self.camera.readnoise,
                 theta=theta,
                 amplitude_ref=ref,
             )
-            if "background" in spots.columns:  # with the parameters' covariances
-                sigma_s = sigma_s * covariance_factor(
-                    shape,
-                    spots[list(_PARAMS)].to_numpy(dtype=np.float64),
-                    roi_size=int(self.options.get("roi_size") or 11),
-                    readnoise=self.camera.readnoise,
-                    theta=theta,
-                    amplitude_ref=ref,
-                )
             slope = z_slope[p](np.where(in_range, s, 0.0))
             z_err = np.hypot(slope * sigma_s, model_part)
         else:
-            z_err = sigma_cal
+            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z)
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
-        kind = self.field_model
-        table = self.crossval_of(kind)
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
-            d_sigma, d_count, d_slope = self._error_model(axis)
+            d_slope = self._error_model(axis)[2]
             shift = delta[p](zq) if shifts is None else shifts[axis]
             slope = d_slope[p](zq)
-            sigma_d = _interp_rows(self.local.z_nm, d_sigma, p, z)
-            model_d = sigma_d * np.sqrt((delta.order + 1) / np.maximum(d_count[p], 1))
-            own = spots[f"{axis}_err"].to_numpy(float) if f"{axis}_err" in spots else sigma_d
-            field_d = field_sigma(table, kind, axis, z, distance)  # nm
+            model_d = self._model_sigma(axis, p, z)
+            if f"{axis}_err" in spots:
+                own = spots[f"{axis}_err"].to_numpy(float)
+            else:
+                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z)
+            field_d = self._field_sigma(axis, z, distance)  # nm
             err = combine(own * px, model_d * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_err = combine(z_err, field_sigma(table, kind, "z", z, distance))
+        z_err = combine(z_err, self._field_sigma("z", z, distance))
         out["z_err_nm"] = np.where(in_range, z_err, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p

@@ -23,46 +23,89 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "covariance_factor"]
+__all__ = ["field_sigma", "combine", "fit_sigma_s"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
+#: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
+SMOOTHING = ("zernike",)
 
 
 def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
-                distance_px: np.ndarray, *, bin_nm: float = 250.0) -> np.ndarray:  # fmt: skip
+                distance_px: np.ndarray, *, bin_nm: float = 250.0,
+                model_nm: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Field-model error (nm, 1σ) of ``model`` on ``axis`` ("x", "y" or "z") at each z and
     distance from the nearest calibration particle.
 
-    A field model is exact at its particles and errs more the farther a spot is from them: for a
-    smooth field the error grows in proportion to that distance. So the held-out errors of
-    ``table`` (:func:`~latentz.calibration.crossval.crossval`) are binned in z (``bin_nm`` wide,
-    merged until each holds :data:`MIN_PER_BIN` planes); each bin gives the RMS error per pixel
-    of held-out distance, ``RMS(err) / RMS(distance)``, interpolated linearly at ``z_nm`` (held
-    constant beyond the end bins) and multiplied by ``distance_px``. Planes the model did not
-    predict do not count. NaN z gives NaN.
+    A field model that passes through its particles (``nearest``, ``natural``) errs more the
+    farther a spot is from them: for a smooth field, in proportion to that distance d. A model
+    that smooths over them (:data:`SMOOTHING`: a few Zernike terms over the whole field) also
+    misses the field at the particles themselves, by about the same everywhere. So the squared
+    error is taken as ``a² + b² d²``, with ``a = 0`` for a model that passes through its
+    particles: the held-out errors of ``table`` (:func:`~latentz.calibration.crossval.
+    crossval`) are binned in z (``bin_nm`` wide, merged until each holds :data:`MIN_PER_BIN`
+    planes), and in each bin ``a²`` and ``b²`` are the least-squares line of the squared errors
+    against the squared held-out distances (:func:`_floor_and_slope`; neither negative), or
+    ``b² = mean(err²) / mean(d²)``. They are interpolated linearly at ``z_nm`` (held constant
+    beyond the end bins) and evaluated at ``distance_px``. Planes the model did not predict do
+    not count. NaN z gives NaN.
+
+    ``model_nm`` (one per row of ``table``) is the 1σ of the held-out particle's own local model
+    at that plane. A held-out error is the field model's error plus two local-model errors that
+    do not grow with distance: the held-out particle's (its polynomial is the "truth" it is
+    compared with) and its neighbours' (the field model is built from their polynomials; at a
+    spot, :meth:`~latentz.calibration.Calibration.apply` adds the nearest particle's as the
+    local model's σ). Both are of the size of ``model_nm`` (polynomials fitted alike through as
+    many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
+    difference clipped at zero): otherwise they are counted twice and grow with distance.
     """
-    rows = table[(table["model"] == model) & table["in_range"]]
+    use = ((table["model"] == model) & table["in_range"]).to_numpy()
+    rows = table[use]
     z = np.asarray(z_nm, dtype=np.float64)
     if len(rows) == 0:
         return np.full(z.shape, np.nan)
     order = np.argsort(rows["z_nm"].to_numpy())
     zz = rows["z_nm"].to_numpy()[order]
     err2 = rows[f"err_{axis}_nm"].to_numpy()[order] ** 2
+    if model_nm is not None:
+        known = np.asarray(model_nm, dtype=np.float64)[use][order]
+        err2 = err2 - 2 * np.where(np.isfinite(known), known, 0.0) ** 2
     dist2 = rows["distance_px"].to_numpy()[order] ** 2
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
     centres, values, first = [], [], 0
+    floor = model in SMOOTHING
     for end in ends:  # merge consecutive bins until each holds enough planes
         if end - first >= MIN_PER_BIN or (end == zz.size and not values):
             centres.append(np.mean(zz[first:end]))
-            values.append(np.sqrt(np.mean(err2[first:end]) / np.mean(dist2[first:end])))
+            values.append(_floor_and_slope(err2[first:end], dist2[first:end], floor))
             first = end
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
-        values[-1] = np.sqrt(np.mean(err2[last]) / np.mean(dist2[last]))
-    per_px = np.interp(z, np.asarray(centres), np.asarray(values))
-    return np.where(np.isfinite(z), per_px * np.asarray(distance_px, dtype=np.float64), np.nan)
+        values[-1] = _floor_and_slope(err2[last], dist2[last], floor)
+    floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
+    d2 = np.asarray(distance_px, dtype=np.float64) ** 2
+    return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
+
+
+def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray, floor: bool) -> tuple[float, float]:
+    """``(a², b²)`` of the least-squares line ``err² = a² + b² d²`` (``dist2`` = d²), neither
+    negative: with a negative slope the mean square alone, with a negative floor (or without
+    ``floor``) the line through the origin that keeps the mean square, ``b² = mean(err²) /
+    mean(d²)``."""
+    mean_e, mean_d = max(float(np.mean(err2)), 0.0), float(np.mean(dist2))
+    if mean_d <= 0:  # held out at the particles' own places: no growth to measure
+        return mean_e, 0.0
+    if not floor:
+        return 0.0, mean_e / mean_d
+    spread = float(np.mean((dist2 - mean_d) ** 2))
+    slope = float(np.mean((dist2 - mean_d) * (err2 - np.mean(err2)))) / spread if spread else 0.0
+    if slope <= 0:
+        return mean_e, 0.0
+    floor = mean_e - slope * mean_d
+    if floor < 0:
+        return 0.0, mean_e / mean_d
+    return floor, slope
 
 
 def combine(*parts: np.ndarray) -> np.ndarray:
@@ -73,52 +116,60 @@ def combine(*parts: np.ndarray) -> np.ndarray:
     return np.sqrt(total)
 
 
-def covariance_factor(
+def fit_sigma_s(
     shape: str,
     params: np.ndarray,
+    errors: np.ndarray,
+    correlations: np.ndarray | None,
     *,
     roi_size: int,
     readnoise: float,
     theta: float | None,
     amplitude_ref: np.ndarray,
 ) -> np.ndarray:
-    """By how much the parameters' covariances change the Cramér–Rao 1σ of the shape value.
-
-    The ratio of the shape value's error with the whole covariance to the error from the
-    diagonal alone (what :func:`~latentz.calibration.shape.shape_sigma` propagates from a spot's
-    ``*_err`` columns), both from the same Fisher information.
+    """The fit's 1σ error of each spot's shape value s, with the parameters' covariances.
 
     ``params`` (n, 7) are the fitted x, y, amplitude, background, wx, wy, ρ (photoelectrons,
-    px). The Fisher information of the Gaussian at those parameters, centred in a ROI of
-    ``roi_size`` (Poisson and read noise), is inverted, and the shape value's gradient in
-    (amplitude, wx, wy, ρ) is carried through it. wx and wy are strongly correlated (about
-    +0.6), and so are ρ and the widths out of focus, which the diagonal alone misses by up to a
-    factor of 1.5. 1 where the information is not usable.
+    px); ``errors`` (n, 4) the standard deviations of amplitude, wx, wy, ρ (the fit's ``*_err``
+    columns: the sandwich covariance of :mod:`latentz.fit.robust`); ``correlations`` (n, 6) their
+    correlations (:data:`latentz.fit.api.CORRELATED`, the fit's ``*_corr`` columns). The
+    gradient of s in (amplitude, wx, wy, ρ) is carried through that covariance: wx and wy are
+    strongly correlated (about +0.6), and so are ρ and the widths out of focus, which the
+    diagonal alone misses by up to a factor of 1.5. Where the correlations are not given (a
+    table without ``*_corr`` columns) they are those of the Cramér–Rao covariance of the
+    Gaussian at the fitted parameters centred in a ROI of ``roi_size`` (the information hardly
+    depends on the position); zero where that is not usable either.
     """
     from latentz.calibration.shape import shape_value
-    from latentz.fit._model import covariance
+    from latentz.fit._model import PARAMS, covariance
+    from latentz.fit.api import CORRELATED, correlations_of
 
     params = np.array(params, dtype=np.float64)
     n = len(params)
-    out = np.full(n, np.nan)
-    ok = np.all(np.isfinite(params), axis=1)
-    if not ok.any():
-        return np.ones(n)
-    p = params[ok]
-    p[:, 0] = p[:, 1] = (roi_size - 1) / 2  # the information hardly depends on the position
-    cov = covariance(p, shape=roi_size, readnoise=readnoise)
-    ref = np.broadcast_to(np.asarray(amplitude_ref, dtype=np.float64), (n,))[ok]
-    grad = np.zeros((len(p), 7))
-    for i in (2, 4, 5, 6):  # amplitude, wx, wy, rho
-        step = 1e-4 * np.maximum(np.abs(p[:, i]), 1e-3) if i != 6 else np.full(len(p), 1e-5)
-        hi, lo = p.copy(), p.copy()
+    which = [PARAMS.index(k) for k in ("amplitude", "wx", "wy", "rho")]
+    sd = np.asarray(errors, dtype=np.float64).reshape(n, 4)
+    corr = np.full((n, len(CORRELATED)), np.nan)
+    if correlations is not None:
+        corr = np.array(correlations, dtype=np.float64).reshape(n, -1)
+    missing = ~np.all(np.isfinite(corr), axis=1) & np.all(np.isfinite(params), axis=1)
+    if missing.any():
+        p = params[missing].copy()
+        p[:, 0] = p[:, 1] = (roi_size - 1) / 2
+        corr[missing] = correlations_of(covariance(p, shape=roi_size, readnoise=readnoise))
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    ref = np.broadcast_to(np.asarray(amplitude_ref, dtype=np.float64), (n,))
+    grad = np.zeros((n, 4))
+    for k, i in enumerate(which):
+        step = np.maximum(np.abs(sd[:, k]), 1e-9) * 1e-3
+        hi, lo = params.copy(), params.copy()
         hi[:, i] += step
         lo[:, i] -= step
         value = [shape_value(shape, q[:, 4], q[:, 5], q[:, 6], q[:, 2], theta=theta,
                              amplitude_ref=ref) for q in (hi, lo)]  # fmt: skip
-        grad[:, i] = (value[0] - value[1]) / (2 * step)
-    full = np.einsum("ni,nij,nj->n", grad, cov, grad)
-    diagonal = np.einsum("ni,nii->n", grad**2, cov)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out[ok] = np.sqrt(full / diagonal)
-    return np.where(np.isfinite(out), out, 1.0)
+        grad[:, k] = (value[0] - value[1]) / (2 * step)
+    g = grad * sd  # gradient in units of each parameter's σ
+    variance = np.sum(g**2, axis=1)
+    for c, (a, b) in enumerate(CORRELATED):
+        ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
+        variance = variance + 2 * corr[:, c] * g[:, ka] * g[:, kb]
+    return np.sqrt(np.maximum(variance, 0.0))

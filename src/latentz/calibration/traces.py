@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from latentz._shared.validate import check_array, check_int, check_positive
+from latentz.calibration.dimming import DIM_COLUMNS, dim_fits
 from latentz.camera import Camera
 
 __all__ = ["Traces", "find_particles", "extract_traces", "TRACE_COLUMNS"]
@@ -69,9 +70,9 @@ class Traces:
     def __post_init__(self) -> None:
         z = np.asarray(self.z_nm, dtype=np.float64)
         data = {}
-        for name in (*TRACE_COLUMNS, "converged"):
+        for name in (*TRACE_COLUMNS, *DIM_COLUMNS, "converged"):
             if name not in self.data:
-                if name in ("converged", "photons") or name.endswith("_err"):
+                if name in ("converged", "photons", *DIM_COLUMNS) or name.endswith("_err"):
                     continue
                 raise ValueError(f"Traces need a {name!r} array.")
             arr = np.asarray(self.data[name])
@@ -82,7 +83,7 @@ class Traces:
             data[name] = arr
         n = data["x"].shape[0]
         ok = np.ones((n, z.size), bool) if "converged" not in data else data["converged"]
-        for name in TRACE_COLUMNS:
+        for name in (*TRACE_COLUMNS, *DIM_COLUMNS):
             if name in data:
                 data[name] = np.where(ok, data[name].astype(np.float64), np.nan)
         data["converged"] = ok.astype(bool)
@@ -214,11 +215,16 @@ def _fit_stack(
         method=method,
         camera=fit_camera,
         device=device,
+        errors="crlb",  # calibration uses the parameters; its precision is computed apart
     )
     out = {}
     for name in (*TRACE_COLUMNS, "converged"):
         if name in table.columns:
             out[name] = table[name].to_numpy().reshape(k, n_z)
+    params = table[["x", "y", "amplitude", "background", "wx", "wy", "rho"]].to_numpy()
+    dim = dim_fits(photons.reshape(k * n_z, roi_size, roi_size), params, method=method,
+                   device=device)  # fmt: skip
+    out.update({name: value.reshape(k, n_z) for name, value in dim.items()})
     out["x"] = out["x"] + corners[:, 1, None]
     out["y"] = out["y"] + corners[:, 0, None]
     return out

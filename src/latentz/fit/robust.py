@@ -9,27 +9,110 @@ ROI's own pixels. For a Gaussian spot A → I and the sandwich is the bound; for
 or rings the Gaussian misses, A < I and the widths scatter more than the bound says (by up to
 1.6x for ρ and the widths near focus at 10³ photons on the validation microscope;
 ``docs/accuracy.md``).
+
+:func:`sandwich_batch` computes it in the fit's own numba code (one evaluation of the score and
+Fisher matrix of :func:`latentz.fit._kernels._evaluate` at the fit and one per parameter, a
+forward difference), about the cost of a few iterations of the fit; :func:`fit_arrays
+<latentz.fit.fit_arrays>` reports its diagonal as the ``*_err`` columns.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+import numba
 import numpy as np
 
-from latentz.fit._model import N_PARAMS, as_param_array, fisher_information, model_and_jacobian
+from latentz.fit._kernels import MLE, _cholesky, _evaluate, _solve
+from latentz.fit._model import N_PARAMS, as_param_array
 
-__all__ = ["misspecified_covariance", "misspecified_errors"]
+__all__ = ["misspecified_covariance", "misspecified_errors", "sandwich_batch"]
+
+#: Forward-difference step of the score, relative to max(|internal parameter|, 1).
+_STEP = 1e-6
 
 
-def _score(rois: np.ndarray, params: np.ndarray, readnoise: float) -> np.ndarray:
-    """(n, 7) gradient of the Poisson log-likelihood in the natural parameters."""
-    mu, jac = model_and_jacobian(params, rois.shape[1:])
-    scale = np.stack([np.ones(len(params))] * 4
-                     + [params[:, 4], params[:, 5], 1.0 - params[:, 6] ** 2], axis=1)  # fmt: skip
-    shifted = readnoise**2
-    weight = (rois.reshape(len(rois), -1) + shifted) / (mu + shifted) - 1.0
-    return np.einsum("np,npk->nk", weight, jac / scale[:, None, :])
+@numba.njit(cache=True)
+def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
+    """Sandwich covariance (7, 7) of one ROI's MLE fit ``natural`` into ``out``; False (and
+    ``out`` untouched) where the observed or Fisher information is not positive definite."""
+    h, w = roi.shape
+    p, p_try, score, score_try, col = vecs[0], vecs[1], vecs[2], vecs[3], vecs[4]
+    info, observed, lower, half = mats[0], mats[1], mats[2], mats[3]
+    p[0], p[1], p[2], p[3] = natural[0], natural[1], natural[2], natural[3]
+    p[4], p[5], p[6] = math.log(natural[4]), math.log(natural[5]), math.atanh(natural[6])
+    # the model is its own reference (mu_ref = mu_out): only the score and information are used
+    _evaluate(roi, p, MLE, s2, 1.0, scratch[0], scratch[1], scratch[0], scratch[1], info, score)
+    for k in range(N_PARAMS):
+        for m in range(N_PARAMS):
+            p_try[m] = p[m]
+        step = _STEP * max(abs(p[k]), 1.0)
+        p_try[k] = p[k] + step
+        _evaluate(roi, p_try, MLE, s2, 1.0, scratch[0], scratch[1], scratch[0], scratch[1],
+                  lower, score_try)  # fmt: skip
+        for m in range(N_PARAMS):
+            observed[m, k] = -(score_try[m] - score[m]) / step
+    for k in range(N_PARAMS):
+        for m in range(k + 1, N_PARAMS):
+            observed[k, m] = observed[m, k] = 0.5 * (observed[k, m] + observed[m, k])
+    if not _cholesky(info, lower) or not _cholesky(observed, lower):
+        return False
+    for k in range(N_PARAMS):  # half = A⁻¹ I (A and I symmetric)
+        for m in range(N_PARAMS):
+            score[m] = info[m, k]
+        _solve(lower, score, col)
+        for m in range(N_PARAMS):
+            half[k, m] = col[m]  # row k of (A⁻¹ I)ᵀ = I A⁻¹
+    for k in range(N_PARAMS):  # out = A⁻¹ (I A⁻¹)
+        for m in range(N_PARAMS):
+            score[m] = half[m, k]
+        _solve(lower, score, col)
+        for m in range(N_PARAMS):
+            out[m, k] = col[m]
+    # internal (log w, atanh ρ) → natural (w, ρ): multiply by d natural / d internal
+    scale = vecs[5]
+    for k in range(N_PARAMS):
+        scale[k] = 1.0
+    scale[4], scale[5], scale[6] = natural[4], natural[5], 1.0 - natural[6] ** 2
+    for k in range(N_PARAMS):
+        for m in range(N_PARAMS):
+            out[k, m] *= scale[k] * scale[m]
+    return True
+
+
+@numba.njit(parallel=True, cache=True)
+def _sandwich_batch(rois, params, s2, n_chunks, out):
+    n, h, w = rois.shape
+    for c in numba.prange(n_chunks):
+        scratch = np.empty((2, h * w))
+        vecs = np.empty((6, N_PARAMS))
+        mats = np.empty((4, N_PARAMS, N_PARAMS))
+        for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            usable = params[k, 4] > 0.0 and params[k, 5] > 0.0 and abs(params[k, 6]) < 1.0
+            for m in range(N_PARAMS):
+                usable = usable and math.isfinite(params[k, m])
+            for i in range(h):
+                for j in range(w):
+                    usable = usable and math.isfinite(rois[k, i, j])
+            if not (usable and _sandwich_one(rois[k], params[k], s2, scratch, vecs, mats, out[k])):
+                for i in range(N_PARAMS):
+                    for j in range(N_PARAMS):
+                        out[k, i, j] = np.nan
+
+
+def sandwich_batch(rois: np.ndarray, params: np.ndarray, readnoise: float) -> np.ndarray:
+    """(n, 7, 7) sandwich covariance ``A⁻¹ I A⁻¹`` of the Poisson maximum-likelihood fits
+    ``params`` (n, 7, natural, ROI pixels) of ``rois`` (n, h, w, photoelectrons), read noise in
+    electrons (module notes). NaN where a parameter or pixel is not finite or either matrix is not
+    positive definite (an observed information that is not, at a fit that did not converge)."""
+    rois = np.ascontiguousarray(rois, dtype=np.float64)
+    params = np.ascontiguousarray(params, dtype=np.float64)
+    out = np.empty((len(params), N_PARAMS, N_PARAMS))
+    if len(params):
+        chunks = min(len(params), 64 * numba.get_num_threads())
+        _sandwich_batch(rois, params, float(readnoise) ** 2, chunks, out)
+    return out
 
 
 def misspecified_errors(rois: Any, params: Any, *, readnoise: float = 0.0) -> np.ndarray:
@@ -45,32 +128,12 @@ def misspecified_covariance(rois: Any, params: Any, *, readnoise: float = 0.0) -
     wy, ρ (module notes).
 
     ``rois`` (n, h, w) in photoelectrons, ``params`` (n, 7) the fit of each in
-    :data:`~latentz.fit.PARAMS` order (ROI pixels), ``readnoise`` in electrons. The observed
-    information is the central difference of the score. NaN where either matrix is singular.
+    :data:`~latentz.fit.PARAMS` order (ROI pixels), ``readnoise`` in electrons. NaN where either
+    matrix is not positive definite.
     """
     rois = np.asarray(rois, dtype=np.float64)
     params = as_param_array(params)
     if rois.ndim != 3 or len(rois) != len(params):
         raise ValueError(f"Expected `rois` (n, h, w) with n = {len(params)} rows of `params`, "
                          f"got shape {rois.shape}.")  # fmt: skip
-    out = np.full((len(params), N_PARAMS, N_PARAMS), np.nan)
-    ok = np.all(np.isfinite(params), axis=1) & np.all(np.isfinite(rois), axis=(1, 2))
-    if not ok.any():
-        return out
-    p, data = params[ok], rois[ok]
-    observed = np.zeros((len(p), N_PARAMS, N_PARAMS))
-    for k in range(N_PARAMS):
-        step = 1e-5 * np.maximum(np.abs(p[:, k]), 1e-2)
-        hi, lo = p.copy(), p.copy()
-        hi[:, k] += step
-        lo[:, k] -= step
-        observed[:, :, k] = -(_score(data, hi, readnoise) - _score(data, lo, readnoise)) / (
-            2 * step[:, None]
-        )
-    observed = 0.5 * (observed + observed.transpose(0, 2, 1))
-    info = fisher_information(p, shape=data.shape[1:], readnoise=readnoise)
-    good = (np.linalg.cond(observed) < 1e12) & (np.linalg.cond(info) < 1e12)
-    inverse = np.full_like(observed, np.nan)
-    inverse[good] = np.linalg.inv(observed[good])
-    out[ok] = np.einsum("nij,njk,nkl->nil", inverse, info, inverse)
-    return out
+    return sandwich_batch(rois, params, readnoise)

@@ -1,0 +1,110 @@
+"""The shape a dimmer emitter shows: the photon-dependent bias of the Gaussian fit.
+
+A Gaussian fitted to a PSF that is not a Gaussian converges to the Gaussian nearest the PSF *under
+the fit's weights* ``1 / (mu + b + readnoise²)``. On a bright calibration particle the weights
+follow the spot, and its core dominates; on a dim emitter over the same background they are nearly
+uniform, and the wings count as much as the core. So the same PSF gives other widths and ρ, and
+another shape value s, at other brightness: a bias of z that no covariance holds (58–65 nm RMS
+below 1500 photons on the validation microscope, ``docs/accuracy.md``).
+
+It is predictable from the calibration's own images. For a noise-free image ``f·S + b`` (PSF S,
+scale f, background b) the maximum-likelihood fit's widths and ρ depend on f and b only through
+the ratio ``c = (b + readnoise²) / A`` of background (and read-noise variance) to the spot's peak
+amplitude A: scaling data and model by f leaves the score equations unchanged. So each
+calibration ROI is refitted with ``c·Â`` more background (:data:`LEVELS`; Â its fitted
+amplitude) and no read noise, which is the particle's PSF seen as a dimmer emitter (its own
+background is kept, not subtracted: the fitted background of a bright image also holds the
+PSF's far wings, and removing it would cut them off); the calibration's noise stays ~0.5 % of
+the peak. Each refit's c is measured as a spot's is, from its own fitted background and
+amplitude. :meth:`Calibration.apply <latentz.calibration.Calibration.apply>` interpolates these
+fits at each spot's own c (log c, between the calibration's own c and the levels) and plane, and
+removes the difference of their shape value from the calibration's from the spot's s before z is
+found (:func:`shape_shift`).
+
+What it cannot see: a calibration bead is not a point emitter (issue 12, the field and bead
+part), and at very low counts the fit's own small-sample bias.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["LEVELS", "DIM_COLUMNS", "dim_fits", "shape_shift"]
+
+#: Background-to-peak ratios c = (b + readnoise²) / A at which the calibration ROIs are refitted:
+#: a single molecule of 10³–10⁴ photons (A ≈ 30–700 per px) over 10–100 photons per px spans
+#: c ≈ 0.02–3.
+LEVELS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+_FITTED = ("amplitude", "wx", "wy", "rho")
+#: Trace names of the refits: ``dim{k}_{amplitude, wx, wy, rho, background}`` for level k.
+DIM_COLUMNS = tuple(
+    f"dim{k}_{name}" for k in range(len(LEVELS)) for name in (*_FITTED, "background")
+)
+
+
+def dim_fits(
+    rois: np.ndarray, params: np.ndarray, *, method: str, device: str = "auto"
+) -> dict[str, np.ndarray]:
+    """Refits (:data:`DIM_COLUMNS`, each (n,)) of calibration ROIs ``rois`` (n, h, w,
+    photoelectrons) fitted as ``params`` (n, 7, natural) over ``c·Â`` more background for each
+    c of :data:`LEVELS` (module notes). NaN where the fit is not usable."""
+    from latentz.fit import PARAMS, fit_arrays
+
+    amplitude = params[:, 2]
+    ok = np.all(np.isfinite(params), axis=1) & (amplitude > 0)
+    out = {}
+    for k, level in enumerate(LEVELS):
+        added = np.where(ok, level * amplitude, 0.0)
+        start = params.copy()
+        start[:, 3] += added
+        fit = fit_arrays(rois + added[:, None, None], method=method, init=start, device=device,
+                         errors="crlb")  # fmt: skip
+        usable = ok & fit.converged
+        for name in (*_FITTED, "background"):
+            value = fit.params[:, PARAMS.index(name)]
+            out[f"dim{k}_{name}"] = np.where(usable, value, np.nan)
+    return out
+
+
+def shape_shift(
+    shape_of: Callable[..., np.ndarray],
+    traces_at: Callable[[str], np.ndarray],
+    c_spot: np.ndarray,
+    c_own: np.ndarray,
+) -> np.ndarray:
+    """Bias (n,) of the shape value of spots of background ratio ``c_spot`` against the
+    calibration's own fit (ratio ``c_own``): ``s(c_spot) − s(c_own)``, linear in log c between
+    the calibration's own fit and the refits above ``c_own`` (the last one's beyond them; 0
+    where ``c_spot ≤ c_own``; NaN where a refit is missing). A refit's own c is measured as a
+    spot's: its fitted background over its fitted amplitude (the refit has no read noise). Both
+    differ from the level: the fitted background of the bright image also holds the PSF's far
+    wings, which are removed with it, and the Gaussian's amplitude changes with the background.
+
+    ``traces_at(name)`` gives a trace at each spot's particle and plane ((n,); name one of
+    :data:`DIM_COLUMNS`, or "amplitude", "wx", "wy", "rho" for the calibration's own fit), and
+    ``shape_of(amplitude, wx, wy, rho)`` the shape value.
+    """
+    own = shape_of(*(traces_at(name) for name in _FITTED))
+    dim = [shape_of(*(traces_at(f"dim{k}_{name}") for name in _FITTED)) for k in range(len(LEVELS))]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        start = np.log(np.asarray(c_own, dtype=np.float64))
+        x = np.maximum(np.log(np.asarray(c_spot, dtype=np.float64)), start)
+        # each refit's own c, measured as a spot's is: its fitted background over its amplitude
+        level = np.log(np.column_stack([
+            traces_at(f"dim{k}_background") / traces_at(f"dim{k}_amplitude")
+            for k in range(len(LEVELS))
+        ]))  # fmt: skip
+    brighter = ~(level > start[:, None])  # levels the calibration is dimmer than (or unknown)
+    knots = np.column_stack([start, np.where(brighter, start[:, None], level)])
+    knots = np.maximum.accumulate(knots, axis=1)  # an unknown level between known ones
+    values = np.column_stack([own, np.where(brighter, own[:, None], np.column_stack(dim))])
+    rows = np.arange(len(own))
+    j = np.sum(knots[:, 1:] < x[:, None], axis=1)  # knots[j] < x <= knots[j + 1]
+    upper = np.minimum(j + 1, len(LEVELS))
+    width = knots[rows, upper] - knots[rows, j]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(width > 0, (x - knots[rows, j]) / width, 1.0)
+    value = values[rows, j] + np.clip(t, 0.0, 1.0) * (values[rows, upper] - values[rows, j])
+    return value - own

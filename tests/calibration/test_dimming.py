@@ -1,0 +1,78 @@
+"""The brightness correction (:mod:`latentz.calibration.dimming`): refitting a bright image of a
+non-Gaussian PSF over a raised background predicts the fit of the same PSF as a dim emitter, and
+the shape shift it gives is the dim fit's shape value minus the bright one's.
+
+Truth is the fit of the noise-free dim image itself (the validation microscope's pupil PSF, not
+a Gaussian), with read noise, at a background chosen so that its ratio c = (b + readnoise²)/A
+falls on one of the refit levels."""
+
+import numpy as np
+import pytest
+
+from latentz.calibration.dimming import dim_fits, shape_shift
+from latentz.calibration.shape import shape_value
+from latentz.fit import PARAMS, fit_arrays
+
+READNOISE = 1.5
+LEVEL = 3  # 0.3 times the bright fit's amplitude added to its background
+
+
+@pytest.fixture(scope="module")
+def psf():
+    from latentz.validation import AberrationFields, Microscope
+    from latentz.validation.datasets import render_patches
+
+    microscope = Microscope()
+    fields = AberrationFields.random((64, 64), seed=3, pixel_size_nm=microscope.pixel_size_nm)
+    return render_patches(microscope, fields, 32.3, 31.8, np.array([-400.0]), 15)[0]
+
+
+def _dim_fit(psf: np.ndarray, photons: float, c: float) -> np.ndarray:
+    """Fit of the noise-free image ``photons·psf + b``, b set so that the fit's own
+    (background + readnoise²) / amplitude is c, as a spot's c is measured."""
+    background = 10.0
+    for _ in range(8):  # the fitted background moves with b one to one: a few rounds settle it
+        fit = fit_arrays((photons * psf + background)[None], readnoise=READNOISE, device="cpu")
+        amplitude, fitted = fit.params[0, 2], fit.params[0, 3]
+        background += c * amplitude - (fitted + READNOISE**2)
+    return fit_arrays((photons * psf + background)[None], readnoise=READNOISE,
+                      device="cpu").params[0]  # fmt: skip
+
+
+def _rho_w(amplitude, wx, wy, rho):
+    return shape_value("rho_w", wx, wy, rho, amplitude)
+
+
+def test_refit_over_a_raised_background_is_the_dim_emitters_fit(psf):
+    bright = 2e5 * psf + 10.0
+    fit = fit_arrays(bright[None], device="cpu")
+    refit = dim_fits(bright[None], fit.params, method="mle", device="cpu")
+    # the refit's own c, as a spot's: its fitted background over its amplitude
+    c = refit[f"dim{LEVEL}_background"][0] / refit[f"dim{LEVEL}_amplitude"][0]
+    dim = _dim_fit(psf, 1500.0, c)
+    for name in ("wx", "wy", "rho"):
+        got, want = refit[f"dim{LEVEL}_{name}"][0], dim[PARAMS.index(name)]
+        # both fits stop within ~0.02 Cramér–Rao σ of their optimum (tol 1e-6 χ² per pixel),
+        # ~1e-3 px for the dim one's widths: 3 of those
+        assert got == pytest.approx(want, abs=3e-3), name
+    # the bias is material: the widths move by far more than the tolerance
+    assert abs(fit.params[0, 4] - dim[4]) > 0.03 and abs(fit.params[0, 5] - dim[5]) > 0.03
+
+
+def test_shape_shift_is_the_dim_minus_the_bright_shape_value(psf):
+    bright = 2e5 * psf + 10.0
+    fit = fit_arrays(bright[None], device="cpu")
+    traces = {
+        **dim_fits(bright[None], fit.params, method="mle", device="cpu"),
+        **{k: fit.params[:, PARAMS.index(k)] for k in ("amplitude", "wx", "wy", "rho")},
+    }
+    own_c = (fit.params[0, 3]) / fit.params[0, 2]
+    c = 0.5  # between two levels: interpolated in log c
+    dim = _dim_fit(psf, 1500.0, c)
+    shift = shape_shift(_rho_w, traces.__getitem__, np.array([c]), np.array([own_c]))
+    want = _rho_w(*dim[[2, 4, 5, 6]]) - _rho_w(*fit.params[0, [2, 4, 5, 6]])
+    assert shift[0] == pytest.approx(want, rel=0.05)
+    assert abs(want) > 0.01  # against a range of rho_w of about ±0.5 over ±1 µm
+    # as bright as the calibration, no shift
+    same = shape_shift(_rho_w, traces.__getitem__, np.array([own_c]), np.array([own_c]))
+    assert same[0] == 0.0

@@ -1,0 +1,44 @@
+"""The field part of the reported errors (:func:`latentz.calibration.errors.field_sigma`) on
+held-out tables of known make-up: a field error that grows in proportion to the distance, a
+floor for a smoothing model, and the local models' part that must not be counted twice."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from latentz.calibration.errors import field_sigma
+
+N = 4000  # held-out planes: the RMS of N normal errors has a relative standard error 1/sqrt(2N)
+TOL = 4 / np.sqrt(2 * N) + 0.03  # 4 standard errors, plus the least-squares fit's own spread
+
+
+def _table(model: str, floor_nm: float, per_px_nm: float, local_nm: float, seed: int):
+    rng = np.random.default_rng(seed)
+    distance = rng.uniform(5.0, 40.0, N)
+    sd = np.sqrt(floor_nm**2 + (per_px_nm * distance) ** 2 + 2 * local_nm**2)
+    return pd.DataFrame({"model": model, "particle": np.arange(N), "distance_px": distance,
+                         "z_nm": rng.uniform(-900, 900, N), "in_range": True,
+                         "err_z_nm": rng.normal(0.0, sd)})  # fmt: skip
+
+
+@pytest.mark.parametrize("distance_px", [0.0, 10.0, 30.0])
+def test_a_smoothing_model_has_a_floor_and_a_growth(distance_px):
+    table = _table("zernike", floor_nm=20.0, per_px_nm=1.0, local_nm=0.0, seed=1)
+    sigma = field_sigma(table, "zernike", "z", np.zeros(1), np.full(1, distance_px))
+    assert sigma[0] == pytest.approx(np.hypot(20.0, distance_px), rel=TOL + 0.1)
+
+
+def test_an_interpolating_model_is_exact_at_its_particles():
+    table = _table("nearest", floor_nm=0.0, per_px_nm=1.5, local_nm=0.0, seed=2)
+    sigma = field_sigma(table, "nearest", "z", np.zeros(3), np.array([0.0, 10.0, 30.0]))
+    np.testing.assert_allclose(sigma, [0.0, 15.0, 45.0], rtol=TOL)
+
+
+def test_the_local_models_part_is_not_counted_in_the_field_part():
+    table = _table("nearest", floor_nm=0.0, per_px_nm=1.0, local_nm=20.0, seed=3)
+    local = np.full(N, 20.0)
+    with_local = field_sigma(table, "nearest", "z", np.zeros(1), np.full(1, 20.0))
+    without = field_sigma(table, "nearest", "z", np.zeros(1), np.full(1, 20.0), model_nm=local)
+    assert without[0] == pytest.approx(20.0, rel=TOL + 0.05)
+    # counted in, it would grow with distance: here by sqrt(1 + 2·20² / mean d²) ≈ 1.5
+    assert with_local[0] > 1.3 * without[0]
