@@ -23,7 +23,7 @@ from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.engine import resolve_device
-from latentz.fit.api import FIT_COLUMNS, METHODS, fit_arrays, result_table
+from latentz.fit.api import FIT_COLUMNS, IMAGE_ERRORS, METHODS, fit_arrays, result_table
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.quality import assess, check_calibration_fits
 from latentz.tracking import localize_tracked
@@ -64,7 +64,9 @@ def _localize_chunk(
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
-    fit = fit_arrays(found.rois, method=method, readnoise=readnoise, device=device)
+    fit = fit_arrays(
+        found.rois, method=method, readnoise=readnoise, device=device, errors=IMAGE_ERRORS
+    )
     row0, col0, edge = found.row0, found.col0, found.edge
     # Centre each ROI on its fitted position, as calibration centres its fixed ROI on the
     # particle: the fitted widths and centre of a wide, truncated spot depend on where the ROI
@@ -77,7 +79,9 @@ def _localize_chunk(
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
         rois = cut_rois(photons, found.frame[moved], new_row0[moved], new_col0[moved], roi_size)
-        refit = fit_arrays(rois, method=method, readnoise=readnoise, device=device)
+        refit = fit_arrays(
+            rois, method=method, readnoise=readnoise, device=device, errors=IMAGE_ERRORS
+        )
         fit = type(fit)(*(_replace_rows(a, b, moved) for a, b in zip(fit, refit, strict=True)))
         row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
     params = fit.params.copy()

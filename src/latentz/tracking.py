@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from latentz.camera import Camera
 from latentz.detect import band_noise, cut_rois, default_threshold, detect_arrays, roi_corners
-from latentz.fit.api import FitResult, fit_arrays, result_table
+from latentz.fit.api import IMAGE_ERRORS, FitResult, fit_arrays, result_table
 
 __all__ = ["localize_tracked"]
 
@@ -111,7 +111,7 @@ def _fit_centred(
         start[:, 0] = xy[:, 0] - col0
         start[:, 1] = xy[:, 1] - row0
     fit = fit_arrays(source.rois(t, row0, col0, size), method=method, readnoise=readnoise,
-                     init=start)  # fmt: skip
+                     init=start, errors=IMAGE_ERRORS)  # fmt: skip
     x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
     ok = np.isfinite(x) & np.isfinite(y)
     new_row0, new_col0, new_edge = roi_corners(
@@ -126,6 +126,7 @@ def _fit_centred(
             source.rois(t, new_row0[moved], new_col0[moved], size),
             method=method,
             readnoise=readnoise,
+            errors=IMAGE_ERRORS,
             init=_shifted(fit.params[moved], col0[moved] - new_col0[moved],
                           row0[moved] - new_row0[moved]),
         )  # fmt: skip

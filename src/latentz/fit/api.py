@@ -100,6 +100,12 @@ def parameter_bounds(shape: tuple[int, int], readnoise: float) -> tuple[np.ndarr
     return lower, upper
 
 
+#: The ``errors`` of fits to real images (`latentz.localize`, full and tracking): a real PSF is
+#: not the Gaussian of eq. 1, and the sandwich covariance holds the scatter that the Cramér–Rao
+#: bound understates (up to 1.6x near focus; docs/accuracy.md).
+IMAGE_ERRORS = "sandwich"
+
+
 def fit_arrays(
     rois: Any,
     *,
@@ -109,7 +115,7 @@ def fit_arrays(
     max_iter: int = 50,
     tol: float = 1e-2,
     device: str = "auto",
-    errors: str = "sandwich",
+    errors: str = "crlb",
 ) -> FitResult:
     """Fit eq. 1 to each ROI of a stack in photoelectrons; the array core of `fit_rois`.
 
@@ -135,10 +141,11 @@ def fit_arrays(
     device : {"auto", "cpu", "cuda"}
         Where to fit (:func:`latentz.engine.resolve_device`): the CPU cores, or one GPU thread
         per ROI in numba's CUDA target (extra ``latentz[gpu]``); the results agree.
-    errors : {"sandwich", "crlb"}
-        ``"sandwich"``: the covariance of a misspecified fit (`FitResult`), on the CPU after the
-        fit, about 1.5x the fit's own time; ``"crlb"``: the Cramér–Rao bound only (correlations
-        NaN), for callers that do not use the errors.
+    errors : {"crlb", "sandwich"}
+        ``"crlb"`` (default): the Cramér–Rao bound, exact when the spots are the Gaussian of
+        eq. 1 (correlations NaN). ``"sandwich"``: the covariance of a misspecified fit
+        (`FitResult`), which holds the scatter when real PSFs are fitted with the Gaussian (as
+        `latentz.localize` does); on the CPU after the fit, about 1.5x the fit's own time.
 
     Returns
     -------
@@ -243,7 +250,7 @@ def fit_rois(
     max_iter: int = 50,
     tol: float = 1e-2,
     device: str = "auto",
-    errors: str = "sandwich",
+    errors: str = "crlb",
 ) -> pd.DataFrame:
     """Fit the bivariate Gaussian of eq. 1 to every ROI (Copeland et al. 2021).
 
@@ -269,7 +276,7 @@ def fit_rois(
         Convergence tolerance: the fit's distance from the optimum in Cramér–Rao bounds.
     device : {"auto", "cpu", "cuda"}
         CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``); "auto" uses a usable GPU.
-    errors : {"sandwich", "crlb"}
+    errors : {"crlb", "sandwich"}
         The ``*_err`` columns: see `fit_arrays`.
 
     Returns
