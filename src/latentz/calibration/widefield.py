@@ -70,6 +70,19 @@ def covered_span(domain: np.ndarray, min_particles: int) -> tuple[float, float]:
     return float(covered.min()), float(covered.max())
 
 
+def _spot_arrays(x_px: Any, y_px: Any, s: Any, iterations: int, field_shape) -> tuple:
+    """x, y, s as float arrays, and which spots lie inside the calibrated field (pixel edges
+    included; NaN positions are outside)."""
+    x = np.atleast_1d(np.asarray(x_px, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
+    s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+    check_int("iterations", iterations, minimum=0)
+    h, w = field_shape
+    with np.errstate(invalid="ignore"):
+        inside = (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+    return x, y, s, inside
+
+
 @dataclass(frozen=True, eq=False)
 class WidefieldModel:
     """Tabulated widefield axial and lateral models.
@@ -279,17 +292,11 @@ class WidefieldModel:
         ``iterations`` > 0 re-evaluates z at the laterally corrected position (x' − Δx',
         y' − Δy') that many times (Supp. Note 1).
         """
-        x = np.atleast_1d(np.asarray(x_px, dtype=np.float64))
-        y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
-        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
-        check_int("iterations", iterations, minimum=0)
+        x, y, s, inside = _spot_arrays(x_px, y_px, s, iterations, self.axial.field_shape)
         if x.size == 0:
             empty = np.empty(0)
             return empty, empty, empty, np.zeros(0, dtype=bool)
-        h, w = self.axial.field_shape
-        with np.errstate(invalid="ignore"):  # spots beyond the calibrated field: out of range
-            beyond = (x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5)
-        x, y = np.where(beyond, np.nan, x), np.where(beyond, np.nan, y)
+        x, y = np.where(inside, x, np.nan), np.where(inside, y, np.nan)  # beyond: out of range
         in_range = self.coverage(x, y, s)
         xq, yq = np.where(in_range, x, np.nan), np.where(in_range, y, np.nan)
         for it in range(iterations + 1):
@@ -391,15 +398,8 @@ class CurveModel:
         ``iterations`` > 0 re-evaluates z at the laterally corrected position (x' − Δx',
         y' − Δy') that many times (Supp. Note 1).
         """
-        x = np.atleast_1d(np.asarray(x_px, dtype=np.float64))
-        y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
-        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
-        check_int("iterations", iterations, minimum=0)
-        h, w = self.field_shape
-        with np.errstate(invalid="ignore"):  # spots beyond the calibrated field: out of range
-            ok = ~((x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5))
-        ok &= np.isfinite(x) & np.isfinite(y) & np.isfinite(s)
-        rows = np.flatnonzero(ok)
+        x, y, s, inside = _spot_arrays(x_px, y_px, s, iterations, self.field_shape)
+        rows = np.flatnonzero(inside & np.isfinite(s))
         if rows.size == 0:
             return (*(np.full(x.size, np.nan) for _ in range(3)), np.zeros(x.size, dtype=bool))
         xr, yr, sr = x[rows], y[rows], s[rows]
