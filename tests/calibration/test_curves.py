@@ -97,3 +97,17 @@ def test_curves_weights_are_natural_inside_the_hull_and_sum_to_one():
     np.testing.assert_allclose(dense[inside], natural[inside], atol=1e-9)
     # linear precision: the weights reproduce the positions themselves inside the hull
     np.testing.assert_allclose(dense[inside] @ points, queries[inside], atol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_curves_calibration_round_trips(calibrations, tmp_path):
+    from latentz.calibration import Calibration
+
+    cal, positions = calibrations
+    xy = positions[:10] + 3.0
+    spots = _spots(xy, np.linspace(-800, 800, 10), cal["curves"].plane.c0)
+    before = cal["curves"].apply(spots)
+    cal["curves"].save(tmp_path / "cal.h5")
+    loaded = Calibration.load(tmp_path / "cal.h5")
+    assert loaded.field_model == "curves"
+    pd.testing.assert_frame_equal(loaded.apply(spots), before)
