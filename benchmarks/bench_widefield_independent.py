@@ -41,7 +41,7 @@ from latentz.validation.truth import localize_test, score, study_truth
 
 OUT = Path(__file__).resolve().parent / "results"
 SHAPES = ("rho", "rho_w", "rho_A", "auto", "auto_A")
-KINDS = ("nearest", "natural", "zernike")
+KINDS = ("nearest", "natural", "curves", "zernike")
 BANDS_NM = (0.0, 500.0, 1000.0, 1500.0, 2000.0)
 ROI = 15
 

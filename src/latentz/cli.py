@@ -197,7 +197,7 @@ def _progress(quiet: bool) -> bool:
     "--field-model",
     default="auto",
     show_default=True,
-    type=click.Choice(["auto", "zernike", "natural", "nearest"]),
+    type=click.Choice(["auto", "zernike", "natural", "curves", "nearest"]),
 )
 @click.option("--n-terms", default=400, show_default=True, help="Zernike terms.")
 @click.option(

@@ -70,6 +70,33 @@ def test_auto_picks_the_best_model_never_worse_than_nearest(rows, chosen):
     assert choose_field_model(_summary(**rows)) == chosen
 
 
+def test_auto_ranks_by_the_typical_emitters_error_not_the_rms_of_the_range_ends():
+    """Model a errs 300 nm at the 4 end planes and 10 nm elsewhere, b 200 nm and 20 nm, and an
+    emitter's own σ_fit is 500 nm at the ends and 20 nm elsewhere: b has the smaller RMS, a the
+    smaller total error sqrt(σ_fit² + err²) for the typical plane, so auto takes a."""
+    sigma = np.r_[np.full(4, 500.0), np.full(96, 20.0)]
+    errors = {"nearest": (400.0, 40.0), "a": (300.0, 10.0), "b": (200.0, 20.0)}
+    table = pd.concat(
+        [
+            pd.DataFrame(
+                {
+                    "model": kind,
+                    "in_range": True,
+                    "err_x_nm": 1.0,
+                    "err_y_nm": 1.0,
+                    "err_z_nm": np.r_[np.full(4, ends), np.full(96, rest)],
+                }
+            )  # fmt: skip
+            for kind, (ends, rest) in errors.items()
+        ],
+        ignore_index=True,
+    )
+    with_sigma = crossval_summary(table, np.tile(sigma, 3))
+    assert with_sigma.loc["a", "rmse_z_nm"] > with_sigma.loc["b", "rmse_z_nm"]
+    assert choose_field_model(with_sigma) == "a"
+    assert choose_field_model(crossval_summary(table)) == "b"  # without σ_fit: the RMS
+
+
 def test_auto_with_too_few_particles_says_so_and_uses_nearest():
     traces, _ = make_traces(MIN_FIELD_PARTICLES - 2, noise=0.02, seed=1)
     cal = calibrate_traces(traces, shape="rho", cull=False)

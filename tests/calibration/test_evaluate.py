@@ -10,7 +10,7 @@ def test_evaluate_reports_every_model_axis_and_region(small_microscope):
     data = small_microscope.calibration
     cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="zernike")
     errors = cal.evaluate(n_z=9, n_s=11)
-    assert set(errors["model"]) == {"zernike", "natural", "nearest"}
+    assert set(errors["model"]) == {"zernike", "natural", "curves", "nearest"}
     assert set(errors["axis"]) == {"x", "y", "z"}
     for col in ("rms_square", "rms_circle", "kurtosis_square", "n_square"):
         assert col in errors
@@ -19,6 +19,7 @@ def test_evaluate_reports_every_model_axis_and_region(small_microscope):
     # nearest particle (which ignores the variation) is never better than natural neighbours
     assert lateral.max() < 20.0
     assert lateral["nearest"] >= lateral["natural"]
+    assert lateral["nearest"] >= lateral["curves"]
     figures = cal.evaluate_figures()
     assert len(figures) == 4 and "Cross-validated errors and reported uncertainties" in figures
 

@@ -29,6 +29,8 @@ __all__ = ["to_arrays", "from_arrays", "save", "load", "FORMAT"]
 FORMAT = "latentz-calibration/3"
 _READABLE = (FORMAT, "latentz-calibration/2", "latentz-calibration/1")
 _CV_TEXT = ("model",)  # cross-validation columns stored as bytes
+#: Field models rebuilt from the local models on load, with no tables to store.
+_UNTABULATED = ("nearest", "curves")
 
 
 def _poly(prefix: str, model) -> dict[str, np.ndarray]:
@@ -81,7 +83,7 @@ def to_arrays(cal) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "n_scores": len(cal.scores),
         "provenance": cal.provenance,
     }
-    if cal.widefield is not None:
+    if cal.field_model not in _UNTABULATED:
         wide, attrs["widefield"] = cal.widefield.as_arrays()
         arrays.update({f"widefield/{k}": v for k, v in wide.items()})
     attrs["field_model"] = cal.field_model  # the model "auto" chose
@@ -173,7 +175,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
         cal._cache["widefield"] = WidefieldModel.from_arrays(
             group("widefield/"), attrs["widefield"]
         )
-    elif attrs["format"] != "latentz-calibration/1" and cal.field_model != "nearest":
+    elif attrs["format"] != "latentz-calibration/1" and cal.field_model not in _UNTABULATED:
         raise KeyError("widefield")
     return cal
 

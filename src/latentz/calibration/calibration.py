@@ -30,7 +30,7 @@ from latentz.fit.api import CORRELATION_COLUMNS
 
 __all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
 
-FIELD_MODELS = ("zernike", "natural", "nearest")
+FIELD_MODELS = ("zernike", "natural", "curves", "nearest")
 #: What ``field_model`` accepts: a model, or "auto" (the best by cross-validation).
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
@@ -200,7 +200,7 @@ class Calibration:
 
     @property
     def field_model(self) -> str:
-        """How models are carried across the field: "zernike", "natural" or "nearest".
+        """How models are carried across the field: "zernike", "natural", "curves" or "nearest".
 
         For ``field_model="auto"`` the one chosen by cross-validation
         (:func:`~latentz.calibration.crossval.choose_field_model`) on first use; with fewer than
@@ -233,14 +233,21 @@ class Calibration:
 
     @property
     def widefield(self):
-        """The widefield models (:class:`~latentz.calibration.widefield.WidefieldModel`) of the
-        kept particles, tabulated on first use from the local models (so a saved and loaded
-        calibration gives the same model); None for ``field_model="nearest"``."""
+        """The widefield models of the kept particles, built on first use from the local models
+        (so a saved and loaded calibration gives the same model): the particles' own curves
+        (:class:`~latentz.calibration.widefield.CurveModel`) for ``field_model="curves"``, or
+        tabulated (:class:`~latentz.calibration.widefield.WidefieldModel`); None for
+        ``field_model="nearest"``."""
         if self.field_model == "nearest":
             return None
         if "widefield" not in self._cache:
-            from latentz.calibration.widefield import WidefieldModel
+            from latentz.calibration.widefield import CurveModel, WidefieldModel
 
+            if self.field_model == "curves":
+                self._cache["widefield"] = CurveModel.from_calibration(
+                    self, field_shape=tuple(self.options["field_shape"])
+                )
+                return self._cache["widefield"]
             self._cache["widefield"] = WidefieldModel.from_calibration(
                 self,
                 kind=self.field_model,

@@ -12,9 +12,17 @@ the field (every ``n_groups``-th particle in a random order): each build then us
 ``1 − 1/n_groups`` of the particles, so the errors are those of a slightly sparser calibration
 (conservative by a few percent for 16 groups).
 
-:func:`choose_field_model` picks the model with the smallest cross-validated z RMSE among those
-no worse than ``nearest`` in z, in lateral RMSE and in coverage (the fraction of held-out planes
-it predicts); ``nearest`` is always eligible, so the choice is never worse than it.
+The choice is judged by what users localize: emitters dimmer than the calibration beads, whose
+own precision σ_fit(z) adds to the field model's error. Far from focus s changes little with z,
+so there both σ_fit and the held-out errors of every model grow large (hundreds of nm at the ends
+of the particles' monotonic ranges), and the RMS of the held-out errors is ruled by those few
+planes. :func:`choose_field_model` therefore ranks the models by the mean over the held-out
+planes of the total error of a typical emitter, ``sqrt(σ_fit² + err_z²)`` (``typical_z_nm``;
+σ_fit the Cramér–Rao σ_z of an emitter of :data:`TYPICAL_PHOTONS` photons imaged like the
+held-out particle at that plane, :func:`~latentz.calibration.precision.crlb_sigma_z`). It takes
+the best among the models no worse than ``nearest`` in that, in lateral RMSE and in coverage (the
+fraction of held-out planes it predicts); ``nearest`` is always eligible, so the choice is never
+worse than it. A table without σ_fit is ranked by the z RMSE.
 """
 
 from __future__ import annotations
@@ -27,14 +35,19 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-__all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "crossval", "choose_field_model",
-           "crossval_summary", "predict", "resolve_auto"]  # fmt: skip
+__all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS", "crossval",
+           "choose_field_model", "crossval_summary", "emitter_sigma_z", "predict",
+           "resolve_auto"]  # fmt: skip
 
 CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
                     "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
 
 #: Fewer kept particles than this leave no field to model: "auto" takes ``nearest``.
 MIN_FIELD_PARTICLES = 12
+
+#: Brightness of the typical emitter that ranks the models: the upper end of single molecules
+#: (100-10,000 photons), where the field model's error is not yet hidden by the fit's precision.
+TYPICAL_PHOTONS = 1e4
 
 
 def _subset(cal: Any, keep: np.ndarray, kind: str) -> Any:
@@ -86,7 +99,7 @@ def _held_out_planes(cal: Any, particles: np.ndarray) -> pd.DataFrame:
 
 def crossval(
     cal: Any,
-    kinds: tuple[str, ...] = ("nearest", "natural", "zernike"),
+    kinds: tuple[str, ...] = ("nearest", "natural", "curves", "zernike"),
     *,
     n_groups: int = 16,
     seed: int = 0,
@@ -147,14 +160,33 @@ def crossval(
     return pd.concat(parts, ignore_index=True)
 
 
-def crossval_summary(table: pd.DataFrame) -> pd.DataFrame:
+def emitter_sigma_z(cal: Any, table: pd.DataFrame, photons: float = TYPICAL_PHOTONS) -> np.ndarray:
+    """σ_z (nm) of an emitter of ``photons`` photons imaged like each row's held-out particle at
+    that plane (:func:`~latentz.calibration.precision.crlb_sigma_z`); NaN where unknown."""
+    from latentz.calibration.precision import crlb_sigma_z
+
+    sigma = crlb_sigma_z(cal.local, cal.traces, cal.shape, photons, roi_size=cal.roi_size,
+                         readnoise=cal.camera.readnoise)  # fmt: skip
+    p = table["particle"].to_numpy(dtype=np.int64)
+    z = table["z_nm"].to_numpy(dtype=np.float64)
+    plane = np.argmin(np.abs(cal.local.z_nm[p] - z[:, None]), axis=1) if p.size else p
+    return sigma[p, plane]
+
+
+def crossval_summary(table: pd.DataFrame, sigma_fit_nm: np.ndarray | None = None) -> pd.DataFrame:
     """Per model: ``rmse_z_nm``, ``rmse_x_nm``, ``rmse_y_nm``, ``rmse_xy_nm`` (x and y pooled)
-    of the predicted planes, their fraction ``in_range`` and the count ``n``."""
+    of the predicted planes, their fraction ``in_range`` and the count ``n``; with
+    ``sigma_fit_nm`` (one per row, :func:`emitter_sigma_z`) also ``typical_z_nm``, the mean of
+    ``sqrt(σ_fit² + err_z²)`` over the predicted planes where σ_fit is known."""
     rows = {}
+    table = table.assign(sigma_fit=np.nan if sigma_fit_nm is None else sigma_fit_nm)
     for kind, part in table.groupby("model", sort=False):
         used = part[part["in_range"]]
         rms = {a: float(np.sqrt(np.mean(used[f"err_{a}_nm"] ** 2))) for a in "xyz"}
+        known = used[np.isfinite(used["sigma_fit"])]
+        typical = np.mean(np.hypot(known["sigma_fit"], known["err_z_nm"])) if len(known) else np.nan
         rows[kind] = {
+            "typical_z_nm": float(typical),
             "rmse_z_nm": rms["z"],
             "rmse_x_nm": rms["x"],
             "rmse_y_nm": rms["y"],
@@ -166,17 +198,20 @@ def crossval_summary(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
-    """The model with the smallest z RMSE among those no worse than ``nearest`` in z and lateral
-    RMSE, that predict at least ``coverage`` x as many held-out planes as it."""
+    """The model with the smallest typical z error (``typical_z_nm``; the z RMSE where that is
+    not known) among those no worse than ``nearest`` in it and in lateral RMSE, that predict at
+    least ``coverage`` x as many held-out planes as it."""
     base = summary.loc["nearest"]
+    known = "typical_z_nm" in summary and np.isfinite(summary["typical_z_nm"]).all()
+    rank = "typical_z_nm" if known else "rmse_z_nm"
     eligible = summary[
-        (summary["rmse_z_nm"] <= base["rmse_z_nm"])
+        (summary[rank] <= base[rank])
         & (summary["rmse_xy_nm"] <= base["rmse_xy_nm"])
         & (summary["in_range"] >= coverage * base["in_range"])
     ]
     if eligible.empty:
         return "nearest"
-    return str(eligible["rmse_z_nm"].idxmin())
+    return str(eligible[rank].idxmin())
 
 
 def resolve_auto(cal: Any) -> str:
@@ -190,4 +225,5 @@ def resolve_auto(cal: Any) -> str:
             stacklevel=3,
         )
         return "nearest"
-    return choose_field_model(crossval_summary(cal.crossval))
+    table = cal.crossval
+    return choose_field_model(crossval_summary(table, emitter_sigma_z(cal, table)))

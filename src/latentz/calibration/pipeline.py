@@ -105,7 +105,7 @@ def calibrate(
         Shape parameter for axial localization (paper eqs. 4–6; "auto" for any astigmatism
         angle). None picks the one with the best expected σ_z for emitters of 100–10,000
         photons (:mod:`latentz.calibration.shape_choice`); ``cal.shape_choice`` says why.
-    field_model : {"auto", "zernike", "natural", "nearest"}
+    field_model : {"auto", "zernike", "natural", "curves", "nearest"}
         How models are carried across the field. "auto" (default): the best by leave-one-
         particle-out cross-validation of the whole prediction, never worse than "nearest"
         (:mod:`latentz.calibration.crossval`); chosen on first use (``cal.field_model``).

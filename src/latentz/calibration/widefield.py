@@ -11,6 +11,14 @@ validity pattern), and each spot interpolates linearly between the two columns a
 Range: a spot is in range only if, among its ``k_near`` nearest calibration particles, at least
 ``min_fraction`` cover its s (both tabulated columns around it); otherwise z is NaN and
 ``in_range`` False. Nothing is extrapolated.
+
+:class:`CurveModel` (``field_model="curves"``) tabulates nothing: it carries each particle's whole
+calibration across the field. A spot's natural neighbours among the particles (Sibson
+coordinates, at the nearest point of their convex hull for a spot outside it) each invert their
+own z(s) at the spot's s; z is the weighted mean, and Δx', Δy' the weighted mean of the
+neighbours' own Δx'(z), Δy'(z) at that z. The weights depend only on the spot's position, so a
+particle's curve is used whole, over its own range, and the interpolant is linear-precision
+between particles (it reproduces a field that varies linearly) and defined everywhere.
 """
 
 from __future__ import annotations
@@ -22,10 +30,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from latentz._shared.validate import check_array, check_int, check_positive
-from latentz.calibration.fieldmodels import FieldModel
+from latentz.calibration.fieldmodels import FieldModel, field_weights
+from latentz.calibration.polymodel import PolyModel
 from latentz.zernike import zernike_design
 
-__all__ = ["WidefieldModel", "covered_span"]
+__all__ = ["CurveModel", "WidefieldModel", "covered_span"]
 
 _PARTS = ("axial", "dx", "dy")  # the three field models, as named in files
 
@@ -59,6 +68,19 @@ def covered_span(domain: np.ndarray, min_particles: int) -> tuple[float, float]:
             f"No shape value is inside the ranges of {min_particles} kept calibration particles."
         )
     return float(covered.min()), float(covered.max())
+
+
+def _spot_arrays(x_px: Any, y_px: Any, s: Any, iterations: int, field_shape) -> tuple:
+    """x, y, s as float arrays, and which spots lie inside the calibrated field (pixel edges
+    included; NaN positions are outside)."""
+    x = np.atleast_1d(np.asarray(x_px, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
+    s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+    check_int("iterations", iterations, minimum=0)
+    h, w = field_shape
+    with np.errstate(invalid="ignore"):
+        inside = (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+    return x, y, s, inside
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,17 +292,11 @@ class WidefieldModel:
         ``iterations`` > 0 re-evaluates z at the laterally corrected position (x' − Δx',
         y' − Δy') that many times (Supp. Note 1).
         """
-        x = np.atleast_1d(np.asarray(x_px, dtype=np.float64))
-        y = np.atleast_1d(np.asarray(y_px, dtype=np.float64))
-        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
-        check_int("iterations", iterations, minimum=0)
+        x, y, s, inside = _spot_arrays(x_px, y_px, s, iterations, self.axial.field_shape)
         if x.size == 0:
             empty = np.empty(0)
             return empty, empty, empty, np.zeros(0, dtype=bool)
-        h, w = self.axial.field_shape
-        with np.errstate(invalid="ignore"):  # spots beyond the calibrated field: out of range
-            beyond = (x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5)
-        x, y = np.where(beyond, np.nan, x), np.where(beyond, np.nan, y)
+        x, y = np.where(inside, x, np.nan), np.where(inside, y, np.nan)  # beyond: out of range
         in_range = self.coverage(x, y, s)
         xq, yq = np.where(in_range, x, np.nan), np.where(in_range, y, np.nan)
         for it in range(iterations + 1):
@@ -303,3 +319,122 @@ class WidefieldModel:
         d = np.full((x.size, p), np.nan)
         d[ok] = zernike_design(x[ok], y[ok], field_shape=self.axial.field_shape, n_terms=p)
         return d
+
+
+def _weighted_mean(
+    query: np.ndarray, weight: np.ndarray, value: np.ndarray, use: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per query, the mean of ``value`` over its triplets where ``use``, weighted by ``weight``,
+    and the weight those triplets carry (the query's weights sum to 1)."""
+    w = np.where(use, weight, 0.0)
+    total = np.bincount(query, w, minlength=n)
+    summed = np.bincount(query, w * np.where(use, value, 0.0), minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return summed / total, total
+
+
+@dataclass(frozen=True, eq=False)
+class CurveModel:
+    """Widefield model that interpolates the particles' own curves (module notes).
+
+    Attributes
+    ----------
+    x_px, y_px : ndarray (n,)
+        Kept particle positions, pixels.
+    inverse : PolyModel
+        Each particle's z(s) (tilt-corrected nm), over its monotonic shape range.
+    dx, dy : PolyModel
+        Each particle's Δx'(z), Δy'(z), pixels.
+    z_span_nm : ndarray (n, 2)
+        The z span each particle was imaged over: its curves are used only inside it.
+    field_shape : (int, int)
+    min_fraction : float
+        A spot is in range where the neighbours that cover its s carry at least this fraction of
+        its weight.
+    """
+
+    x_px: np.ndarray
+    y_px: np.ndarray
+    inverse: PolyModel
+    dx: PolyModel
+    dy: PolyModel
+    z_span_nm: np.ndarray
+    field_shape: tuple[int, int]
+    min_fraction: float = 0.5
+
+    @classmethod
+    def from_calibration(
+        cls, cal: Any, *, field_shape: tuple[int, int], min_fraction: float = 0.5
+    ) -> CurveModel:
+        """The kept particles of a :class:`~latentz.calibration.calibration.Calibration`."""
+        kept = cal.kept
+        if kept.size == 0:
+            raise ValueError("Every calibration particle was culled: nothing to apply.")
+        min_fraction = check_positive("min_fraction", min_fraction)
+        if min_fraction > 1:
+            raise ValueError(f"Expected `min_fraction` in (0, 1], got {min_fraction!r}.")
+        x, y = cal.positions[kept].T
+        return cls(
+            x,
+            y,
+            cal.local.shapes[cal.shape].inverse[kept],
+            cal.local.dx[kept],
+            cal.local.dy[kept],
+            cal.z_span_nm[kept],
+            tuple(field_shape),
+            min_fraction,
+        )
+
+    def _inside_span(self, particle: np.ndarray, z: np.ndarray) -> np.ndarray:
+        lo, hi = self.z_span_nm[particle].T
+        with np.errstate(invalid="ignore"):
+            return (z >= lo) & (z <= hi)
+
+    def __call__(
+        self, x_px: Any, y_px: Any, s: Any, *, iterations: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """z (nm), Δx', Δy' (pixels) and in_range for spots at apparent (x', y') with shape s.
+
+        ``iterations`` > 0 re-evaluates z at the laterally corrected position (x' − Δx',
+        y' − Δy') that many times (Supp. Note 1).
+        """
+        x, y, s, inside = _spot_arrays(x_px, y_px, s, iterations, self.field_shape)
+        rows = np.flatnonzero(inside & np.isfinite(s))
+        if rows.size == 0:
+            return (*(np.full(x.size, np.nan) for _ in range(3)), np.zeros(x.size, dtype=bool))
+        xr, yr, sr = x[rows], y[rows], s[rows]
+        xq, yq = xr, yr
+        for it in range(iterations + 1):
+            q, p, wt = self._weights(xq, yq)
+            zr, covered = self._z(q, p, wt, sr)
+            if it:  # the lateral models at the apparent position, as the paper's
+                q, p, wt = self._weights(xr, yr)
+            dxr, dyr = (self._delta(model, q, p, wt, zr) for model in (self.dx, self.dy))
+            xq, yq = xr - dxr, yr - dyr
+        out = [np.full(x.size, np.nan) for _ in range(3)]
+        in_range = np.zeros(x.size, dtype=bool)
+        in_range[rows] = (covered >= self.min_fraction) & np.isfinite(dxr) & np.isfinite(dyr)
+        for full, part in zip(out, (zr, dxr, dyr), strict=True):
+            full[rows] = np.where(in_range[rows], part, np.nan)
+        return out[0], out[1], out[2], in_range
+
+    def _weights(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(spot, particle, weight) triplets of the spots at (x, y)."""
+        points = np.column_stack([self.x_px, self.y_px])
+        q, p, wt, _ = field_weights(points, np.column_stack([x, y]))
+        return q, p, wt
+
+    def _z(self, q, p, wt, s) -> tuple[np.ndarray, np.ndarray]:
+        """z of each spot from its neighbours' own z(s), and the weight of those covering s."""
+        inverse = self.inverse[p]
+        use = inverse.contains(s[q]) & inverse.valid
+        z_p = inverse(np.where(use, s[q], inverse.domain[:, 0]))
+        use &= self._inside_span(p, z_p)
+        return _weighted_mean(q, wt, z_p, use, s.size)
+
+    def _delta(self, model: PolyModel, q, p, wt, z) -> np.ndarray:
+        """Δx' or Δy' of each spot: its neighbours' own curves at its z (NaN z gives NaN)."""
+        zq = z[q]
+        use = self._inside_span(p, zq)
+        zq = np.where(use, zq, self.z_span_nm[p, 0])
+        return _weighted_mean(q, wt, model[p](zq), use, z.size)[0]
