@@ -23,7 +23,14 @@ from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
 from latentz.engine import resolve_device
-from latentz.fit.api import FIT_COLUMNS, IMAGE_ERRORS, METHODS, fit_arrays, result_table
+from latentz.fit.api import (
+    FIT_COLUMNS,
+    METHODS,
+    fit_arrays,
+    replace_rows,
+    result_table,
+    with_sandwich,
+)
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.quality import assess, check_calibration_fits
 from latentz.tracking import localize_tracked
@@ -64,9 +71,8 @@ def _localize_chunk(
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
-    fit = fit_arrays(
-        found.rois, method=method, readnoise=readnoise, device=device, errors=IMAGE_ERRORS
-    )
+    rois = found.rois
+    fit = fit_arrays(rois, method=method, readnoise=readnoise, device=device)
     row0, col0, edge = found.row0, found.col0, found.edge
     # Centre each ROI on its fitted position, as calibration centres its fixed ROI on the
     # particle: the fitted widths and centre of a wide, truncated spot depend on where the ROI
@@ -78,12 +84,14 @@ def _localize_chunk(
     new_row0, new_col0, new_edge = roi_corners(rows, cols, roi_size, photons.shape[-2:])
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
-        rois = cut_rois(photons, found.frame[moved], new_row0[moved], new_col0[moved], roi_size)
-        refit = fit_arrays(
-            rois, method=method, readnoise=readnoise, device=device, errors=IMAGE_ERRORS
-        )
-        fit = type(fit)(*(_replace_rows(a, b, moved) for a, b in zip(fit, refit, strict=True)))
+        again = cut_rois(photons, found.frame[moved], new_row0[moved], new_col0[moved], roi_size)
+        refit = fit_arrays(again, method=method, readnoise=readnoise, device=device)
+        fit = replace_rows(fit, refit, moved)
+        rois = rois.copy()
+        rois[moved] = again
         row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
+    # the errors of the final fits only (the sandwich needs each one's own ROI)
+    fit = with_sandwich(fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise)
     params = fit.params.copy()
     params[:, 0] += col0
     params[:, 1] += row0
@@ -110,12 +118,6 @@ def _photons(block: np.ndarray, camera: Camera | None) -> np.ndarray:
     photons = (block.astype(np.float32) - np.float32(camera.offset)) * np.float32(camera.gain)
     flat = camera.flatfield_region(block.shape[-2:])
     return photons if flat is None else photons / flat.astype(np.float32)
-
-
-def _replace_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    out = old.copy()
-    out[rows] = new
-    return out
 
 
 def _dtype(column: str) -> str:

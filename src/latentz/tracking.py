@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from latentz.camera import Camera
 from latentz.detect import band_noise, cut_rois, default_threshold, detect_arrays, roi_corners
-from latentz.fit.api import IMAGE_ERRORS, FitResult, fit_arrays, result_table
+from latentz.fit.api import FitResult, fit_arrays, replace_rows, result_table, with_sandwich
 
 __all__ = ["localize_tracked"]
 
@@ -110,8 +110,8 @@ def _fit_centred(
         start = init.copy()
         start[:, 0] = xy[:, 0] - col0
         start[:, 1] = xy[:, 1] - row0
-    fit = fit_arrays(source.rois(t, row0, col0, size), method=method, readnoise=readnoise,
-                     init=start, errors=IMAGE_ERRORS)  # fmt: skip
+    rois = source.rois(t, row0, col0, size)
+    fit = fit_arrays(rois, method=method, readnoise=readnoise, init=start)
     x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
     ok = np.isfinite(x) & np.isfinite(y)
     new_row0, new_col0, new_edge = roi_corners(
@@ -122,16 +122,20 @@ def _fit_centred(
     )
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
+        centred = source.rois(t, new_row0[moved], new_col0[moved], size)
         again = fit_arrays(
-            source.rois(t, new_row0[moved], new_col0[moved], size),
+            centred,
             method=method,
             readnoise=readnoise,
-            errors=IMAGE_ERRORS,
             init=_shifted(fit.params[moved], col0[moved] - new_col0[moved],
                           row0[moved] - new_row0[moved]),
         )  # fmt: skip
-        fit = FitResult(*(_put(a, b, moved) for a, b in zip(fit, again, strict=True)))
+        fit = replace_rows(fit, again, moved)
+        rois = rois.copy()
+        rois[moved] = centred
         row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
+    # the errors of the final fits only (the sandwich needs each one's own ROI)
+    fit = with_sandwich(fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise)
     params = fit.params.copy()
     params[:, 0] += col0
     params[:, 1] += row0
@@ -142,12 +146,6 @@ def _shifted(params: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     out = params.copy()
     out[:, 0] += dx
     out[:, 1] += dy
-    return out
-
-
-def _put(old: np.ndarray, new: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    out = old.copy()
-    out[rows] = new
     return out
 
 

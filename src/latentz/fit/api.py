@@ -100,12 +100,6 @@ def parameter_bounds(shape: tuple[int, int], readnoise: float) -> tuple[np.ndarr
     return lower, upper
 
 
-#: The ``errors`` of fits to real images (`latentz.localize`, full and tracking): a real PSF is
-#: not the Gaussian of eq. 1, and the sandwich covariance holds the scatter that the Cramér–Rao
-#: bound understates (up to 1.6x near focus; docs/accuracy.md).
-IMAGE_ERRORS = "sandwich"
-
-
 def fit_arrays(
     rois: Any,
     *,
@@ -199,21 +193,36 @@ def fit_arrays(
                 min(n, 64 * numba.get_num_threads()), *out,
             )  # fmt: skip
     correlations = np.full((n, len(CORRELATED)), np.nan)
-    if robust and code != _kernels.LSQ:
-        correlations = _sandwich_errors(data, params, errors, math.sqrt(s2))
-    return FitResult(params, errors, loglik, chi2, iterations, converged, correlations)
+    result = FitResult(params, errors, loglik, chi2, iterations, converged, correlations)
+    return with_sandwich(result, data, method=method, readnoise=math.sqrt(s2)) if robust else result
 
 
-def _sandwich_errors(
-    data: np.ndarray, params: np.ndarray, errors: np.ndarray, readnoise: float
-) -> np.ndarray:
-    """Replace the Cramér–Rao ``errors`` (n, 7) in place by the sandwich's where it is usable
-    and return its correlations of `CORRELATED` (n, 6; NaN where it is not)."""
-    cov = sandwich_batch(data, params, readnoise)
+def with_sandwich(
+    result: FitResult, rois: np.ndarray, *, method: str, readnoise: float
+) -> FitResult:
+    """``result`` of fitting ``rois`` (n, h, w, photoelectrons) with its errors replaced by the
+    sandwich covariance's where that is usable, and its correlations (`CORRELATED`) set, as
+    ``errors="sandwich"`` gives. For images of real PSFs (`latentz.localize`, full and tracking):
+    a real PSF is not the Gaussian of eq. 1, and the sandwich holds the scatter that the
+    Cramér–Rao bound understates (up to 1.6x near focus). "lsq" keeps the bound."""
+    if METHODS[method] == _kernels.LSQ:
+        return result
+    cov = sandwich_batch(rois, result.params, readnoise)
     variance = np.diagonal(cov, 0, 1, 2)
     usable = np.all(variance > 0, axis=1)
+    errors = result.errors.copy()
     errors[usable] = np.sqrt(variance[usable])
-    return correlations_of(cov)
+    return result._replace(errors=errors, correlations=correlations_of(cov))
+
+
+def replace_rows(result: FitResult, new: FitResult, rows: np.ndarray) -> FitResult:
+    """``result`` with the fits at ``rows`` (boolean mask) replaced by ``new``'s, in order."""
+    fields = []
+    for old, value in zip(result, new, strict=True):
+        out = old.copy()
+        out[rows] = value
+        fields.append(out)
+    return FitResult(*fields)
 
 
 def correlations_of(cov: np.ndarray) -> np.ndarray:
