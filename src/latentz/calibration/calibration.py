@@ -263,11 +263,12 @@ class Calibration:
 
         return evaluate(self, **options)
 
-    def evaluate_figures(self) -> dict[str, Any]:
-        """Figs. 4 and 5 as matplotlib figures, by name."""
+    def evaluate_figures(self, **options: Any) -> dict[str, Any]:
+        """Figs. 4 and 5 as matplotlib figures, by name; see
+        :func:`latentz.calibration.evaluate.evaluate_figures`."""
         from latentz.calibration.evaluate import evaluate_figures
 
-        return evaluate_figures(self)
+        return evaluate_figures(self, **options)
 
     @property
     def width_range_px(self) -> tuple[float, float]:
