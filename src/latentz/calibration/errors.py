@@ -14,6 +14,12 @@ Three independent parts, added in quadrature:
    held-out errors of the chosen field model per pixel of distance to the nearest particle, in
    bins of z, times the spot's own distance to its nearest particle (:func:`field_sigma`).
 
+Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
+scatter about their z(s) curve less than their fit errors say, the camera's noise model
+overstates the noise (a gain too low, or frames averaged before saving) and the fit's part is
+scaled down to the measured scatter; where they scatter more, something other than the fit's
+noise (stage jitter, illumination flicker, the curve's lack of fit) adds the excess to every spot.
+
 Part 3 is what the paper's error estimate lacks: its fit residuals at the particles shrink as terms
 are added, while the error between particles grows.
 """
@@ -23,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "fit_sigma_s"]
+__all__ = ["field_sigma", "combine", "fit_sigma_s", "measured_noise"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -173,3 +179,31 @@ def fit_sigma_s(
         ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
         variance = variance + 2 * corr[:, c] * g[:, ka] * g[:, kb]
     return np.sqrt(np.maximum(variance, 0.0))
+
+
+def measured_noise(
+    residual_nm: np.ndarray, predicted_nm: np.ndarray, n_params: np.ndarray
+) -> tuple[float, float]:
+    """``(scale, excess_nm)`` of the fit's z error, from the calibration's own images.
+
+    ``residual_nm`` (n, n_z): each calibration image's z minus its particle's z(s) curve (NaN
+    where not used); ``predicted_nm`` (n, n_z): the fit's part of ``z_err_nm`` for that image, as
+    :meth:`~latentz.calibration.Calibration.apply` computes it for a spot; ``n_params`` (n,): the
+    parameters of each particle's curve. The measured mean square (each particle's corrected by
+    ``m / (m − n_params)`` for its ``m`` residuals) against the predicted: a ratio r = RMS
+    measured / RMS predicted below 1 means the pixels are less noisy than the camera model says,
+    which scales every fit error (any brightness) by ``scale = r``; above 1, something adds
+    ``excess_nm = sqrt(measured² − predicted²)`` to every spot, whatever its brightness.
+    ``(1.0, 0.0)`` where nothing is measured.
+    """
+    use = np.isfinite(residual_nm) & np.isfinite(predicted_nm)
+    m = use.sum(axis=1)
+    dof = m / np.maximum(m - np.asarray(n_params), 1)
+    measured = np.sum(dof * np.sum(np.where(use, residual_nm, 0.0) ** 2, axis=1))
+    predicted = np.sum(np.where(use, predicted_nm, 0.0) ** 2)
+    if predicted <= 0 or measured <= 0:
+        return 1.0, 0.0
+    ratio = np.sqrt(measured / predicted)
+    if ratio < 1:
+        return float(ratio), 0.0
+    return 1.0, float(np.sqrt((measured - predicted) / np.count_nonzero(use)))
