@@ -382,35 +382,30 @@ class Calibration:
         return np.abs(self._error_model("z")[2][p](s)) * sigma_s
 
     @property
-    def measured_noise(self) -> tuple[float, float]:
-        """``(scale, excess_nm)``: the fit's z error against the scatter of the kept particles'
-        own usable calibration images about their z(s) curves
-        (:func:`~latentz.calibration.errors.measured_noise`); :meth:`apply` scales the fit's
-        part by ``scale`` and adds ``excess_nm``. ``(1, 0)`` for traces without fit errors."""
-        if "measured_noise" not in self._cache:
-            self._cache["measured_noise"] = (1.0, 0.0)
+    def noise_scale(self) -> float:
+        """Factor (≤ 1) on the fit's part of ``z_err_nm``: the kept particles' usable calibration
+        images against their own fit errors (:func:`~latentz.calibration.errors.
+        measured_noise`); 1 for traces without fit errors."""
+        if "noise_scale" not in self._cache:
+            model, tr, k = self.local.shapes[self.shape], self.traces, self.kept
             names = ("amplitude_err", "wx_err", "wy_err", "rho_err")
-            if all(k in self.traces.data for k in names) and self.kept.size:
-                k, model, tr = self.kept, self.local.shapes[self.shape], self.traces
+            self._cache["noise_scale"] = 1.0
+            if all(c in tr.data for c in names) and k.size:
                 n_z = self.local.z_nm.shape[1]
                 params = np.stack([tr[c][k] for c in _PARAMS], axis=-1).reshape(-1, 7)
                 errors = np.stack([tr[c][k] for c in names], axis=-1).reshape(-1, 4)
                 corr = np.stack([tr.data.get(c, np.full(tr["x"].shape, np.nan))[k]
                                  for c in CORRELATION_COLUMNS], axis=-1).reshape(-1, 6)  # fmt: skip
-                values = model.values[k]
                 use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
                 p = np.repeat(k, n_z)
-                ref = model.amplitude_ref[p]
-                s = np.where(use, values, 0.0).ravel()
-                predicted = self._fit_part_z(params, errors, corr, p, s, ref).reshape(len(k), n_z)
-                z = self.local.z_nm[k]
-                residual = np.where(use, model.inverse[k].residuals(values, z), np.nan)
-                self._cache["measured_noise"] = measured_noise(
-                    residual,
-                    np.where(use, predicted, np.nan),
-                    np.full(len(k), model.inverse.order + 1),
+                s = np.where(use, model.values[k], 0.0).ravel()
+                part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
+                predicted = np.where(use, part.reshape(len(k), n_z), np.nan)
+                residual = model.inverse[k].residuals(model.values[k], self.local.z_nm[k])
+                self._cache["noise_scale"] = measured_noise(
+                    residual, predicted, n_params=model.inverse.order + 1
                 )
-        return self._cache["measured_noise"]
+        return self._cache["noise_scale"]
 
     def _model_sigma(self, axis: str, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
@@ -556,8 +551,7 @@ class Calibration:
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
             fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
-            scale, excess_nm = self.measured_noise
-            z_err = combine(scale * fit_part, model_part, excess_nm)
+            z_err = np.hypot(self.noise_scale * fit_part, model_part)
         else:
             z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z)
         px = self.camera.pixel_size_nm
