@@ -388,12 +388,11 @@ class Calibration:
         measured_noise`); 1 for traces without fit errors."""
         if "noise_scale" not in self._cache:
             model, tr, k = self.local.shapes[self.shape], self.traces, self.kept
-            names = ("amplitude_err", "wx_err", "wy_err", "rho_err")
             self._cache["noise_scale"] = 1.0
-            if all(c in tr.data for c in names) and k.size:
+            if all(c in tr.data for c in _ERROR_COLUMNS) and k.size:
                 n_z = self.local.z_nm.shape[1]
                 params = np.stack([tr[c][k] for c in _PARAMS], axis=-1).reshape(-1, 7)
-                errors = np.stack([tr[c][k] for c in names], axis=-1).reshape(-1, 4)
+                errors = np.stack([tr[c][k] for c in _ERROR_COLUMNS], axis=-1).reshape(-1, 4)
                 corr = np.stack([tr.data.get(c, np.full(tr["x"].shape, np.nan))[k]
                                  for c in CORRELATION_COLUMNS], axis=-1).reshape(-1, 6)  # fmt: skip
                 use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
@@ -497,7 +496,8 @@ class Calibration:
         ``field_model="nearest"``, from the nearest calibration particle's local models.
         Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
         nearest particle's local model errors and the field model's cross-validated error
-        (:mod:`latentz.calibration.errors`).
+        (:mod:`latentz.calibration.errors`); the spots' own part is scaled by
+        :attr:`noise_scale` where the calibration images show less noise than their fits say.
 
         Parameters
         ----------
