@@ -63,6 +63,11 @@ def summarise(errors: pd.DataFrame) -> dict[str, float]:
     band = np.abs(used["true_z_nm"].to_numpy())
     for lo, hi in zip(BANDS_NM[:-1], BANDS_NM[1:], strict=True):
         sel = (band >= lo) & (band < hi)
+        row[f"z {lo / 1000:.1f}-{hi / 1000:.1f}"] = float(
+            np.sqrt(np.mean(used["err_z_nm"][sel] ** 2))
+        )
+    for lo, hi in zip(BANDS_NM[:-1], BANDS_NM[1:], strict=True):
+        sel = (band >= lo) & (band < hi)
         both = np.concatenate([used["err_x_nm"][sel], used["err_y_nm"][sel]])
         row[f"xy {lo / 1000:.1f}-{hi / 1000:.1f}"] = float(np.sqrt(np.mean(both**2)))
     for axis in "xyz":
@@ -312,7 +317,8 @@ def main() -> None:
         f"machine). Test spots of {data.test_truth['emitter'].nunique()} point emitters; "
         f"{len(data.calibration_truth)} calibration beads; test emitters of "
         f"{test_photons[0]:g}-{test_photons[1]:g} photons. RMSE in nm after one global offset "
-        "per axis; `xy a-b`: lateral RMSE (x and y pooled) for a <= |true z| < b µm; `cov`: "
+        "per axis; `z a-b`: z RMSE for a <= |true z| < b µm (same offset); `xy a-b`: lateral "
+        "RMSE (x and y pooled) for a <= |true z| < b µm; `cov`: "
         "fraction of errors within the reported 1σ.\n\n"
     )
     suffix = "" if args.size == "full" else f"_{args.size}"
