@@ -16,7 +16,9 @@ A-normalised shapes use each emitter's own reference amplitude (``amplitude_refe
 "particle"``, the emitters are of constant brightness). RMSEs are after one global offset per
 axis. Writes ``results/bench_widefield_independent.md``.
 
-Run: ``python benchmarks/bench_widefield_independent.py [--size small] [--cache FILE]``.
+Run: ``python benchmarks/bench_widefield_independent.py [--size small] [--cache FILE]
+[--test-photons LO,HI] [--defaults]``. ``--defaults`` runs issue 12's "defaults only" study
+(:func:`defaults_study`) and writes ``results/bench_widefield_independent_defaults*.md``.
 """
 
 from __future__ import annotations
