@@ -234,17 +234,7 @@ def _independent_emitters(ds, cal, *, diameter_nm, seed):
 @pytest.mark.parametrize(
     "diameter_nm",
     [
-        pytest.param(
-            1000.0,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="known gap: for 1 µm emitters at 0.3x the calibration's brightness, 4-10 px "
-                "from a calibration particle, the brightness correction (calibration.dimming) "
-                "cut the z RMSE from 45.7 to 20.8 nm (bias +0.7 nm), but the reported z_err_nm "
-                "(15.6 nm: sandwich fit, local and cross-validated field parts) is still 0.75x "
-                "it, short of the 0.8x the test allows (docs/accuracy.md)",
-            ),
-        ),
+        1000.0,  # its emitters (traces_table) carry the sandwich errors, as localize's spots do
     ],
     ids=["particles"],
 )
@@ -300,7 +290,7 @@ def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
         f"{np.nanmin(chi2):.0f}–{np.nanmax(chi2):.0f} (limit {CHI2_LIMIT})"
     )
     # against truth: their errors are far outside the reported uncertainty (5x: beyond the 2.9x
-    # by which the error model misses for 1 µm emitters, the xfail above), so none may be good
+    # by which the error model once missed for 1 µm emitters, the test above), so none may be good
     assert rmse > 5 * reported
     located = np.isfinite(chi2)
     assert located.mean() >= 0.9 and (chi2[located] > CHI2_LIMIT).all()
