@@ -263,11 +263,12 @@ class Calibration:
 
         return evaluate(self, **options)
 
-    def evaluate_figures(self) -> dict[str, Any]:
-        """Figs. 4 and 5 as matplotlib figures, by name."""
+    def evaluate_figures(self, **options: Any) -> dict[str, Any]:
+        """Figs. 4 and 5 as matplotlib figures, by name; see
+        :func:`latentz.calibration.evaluate.evaluate_figures`."""
         from latentz.calibration.evaluate import evaluate_figures
 
-        return evaluate_figures(self)
+        return evaluate_figures(self, **options)
 
     @property
     def width_range_px(self) -> tuple[float, float]:
@@ -406,15 +407,18 @@ class Calibration:
                 )
         return self._cache["noise_scale"]
 
-    def _model_sigma(self, axis: str, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+    def _model_sigma(
+        self, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
+    ) -> np.ndarray:
         """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
-        its residual σ at that z over the square root of its planes per polynomial parameter."""
+        its residual σ at that z over the square root of its planes per polynomial parameter
+        (``at``: :func:`_row_weights` of p and z, if known)."""
         sigma, count, _ = self._error_model(axis)
         if axis == "z":
             order = self.local.shapes[self.shape].inverse.order
         else:
             order = (self.local.dx if axis == "x" else self.local.dy).order
-        return _interp_rows(self.local.z_nm, sigma, p, z) * np.sqrt(
+        return _interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
             (order + 1) / np.maximum(count[p], 1)
         )
 
@@ -460,10 +464,10 @@ class Calibration:
         from latentz.calibration.dimming import shape_shift
 
         s2 = self.camera.readnoise**2
-        zq = np.where(np.isfinite(z), z, np.nan)
+        at = _row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
-            return _interp_rows(self.local.z_nm, self.traces[name], p, zq)
+            return _interp_rows(self.local.z_nm, self.traces[name], p, z, at)
 
         def shape_of(a, wx, wy, rho):
             return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
@@ -545,7 +549,8 @@ class Calibration:
             s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
-        model_part = self._model_sigma("z", p, z)
+        at = _row_weights(self.local.z_nm, p, z)
+        model_part = self._model_sigma("z", p, z, at)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
@@ -553,7 +558,7 @@ class Calibration:
             fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
             z_err = np.hypot(self.noise_scale * fit_part, model_part)
         else:
-            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z)
+            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
@@ -561,11 +566,11 @@ class Calibration:
             d_slope = self._error_model(axis)[2]
             shift = delta[p](zq) if shifts is None else shifts[axis]
             slope = d_slope[p](zq)
-            model_d = self._model_sigma(axis, p, z)
+            model_d = self._model_sigma(axis, p, z, at)
             if f"{axis}_err" in spots:
                 own = spots[f"{axis}_err"].to_numpy(float)
             else:
-                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z)
+                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
             field_d = self._field_sigma(axis, z, distance)  # nm
             err = combine(own * px, model_d * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
@@ -596,10 +601,12 @@ def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.n
     return frame["track"].map(lookup).to_numpy(dtype=np.float64)
 
 
-def _interp_rows(
-    z_grid: np.ndarray, values: np.ndarray, rows: np.ndarray, z: np.ndarray
-) -> np.ndarray:
-    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``.
+def _row_weights(
+    z_grid: np.ndarray, rows: np.ndarray, z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where :func:`_interp_rows` reads each point: the rows, the upper plane index j and the
+    weight w of plane j (1 − w of plane j − 1); computed once for every trace read at the same
+    points.
 
     Every row of ``z_grid`` (n, n_z) is the same increasing grid of piezo planes minus one shift
     (the particle's tilt plane), so each point interpolates on the first row after undoing its
@@ -609,6 +616,19 @@ def _interp_rows(
     u = z + (base[0] - z_grid[:, 0])[rows]
     j = np.clip(np.searchsorted(base, np.where(np.isfinite(u), u, -np.inf)), 1, base.size - 1)
     w = np.clip((u - base[j - 1]) / (base[j] - base[j - 1]), 0.0, 1.0)
+    return rows, j, w
+
+
+def _interp_rows(
+    z_grid: np.ndarray,
+    values: np.ndarray,
+    rows: np.ndarray,
+    z: np.ndarray,
+    at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``;
+    ``at``: :func:`_row_weights` of these rows and z, if already known."""
+    rows, j, w = _row_weights(z_grid, rows, z) if at is None else at
     return (1 - w) * values[rows, j - 1] + w * values[rows, j]
 
 
