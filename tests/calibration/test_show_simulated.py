@@ -241,7 +241,13 @@ def independent_emitters(ds, cal, *, diameter_nm, seed, photons=0.3 * 5e5, noise
     return pd.concat(spots, ignore_index=True), z_true
 
 
-@pytest.mark.parametrize("diameter_nm", [1000.0], ids=["particles"])
+@pytest.mark.parametrize(
+    "diameter_nm",
+    [
+        1000.0,  # its emitters (traces_table) carry the sandwich errors, as localize's spots do
+    ],
+    ids=["particles"],
+)
 def test_independent_emitters_are_localized_within_their_uncertainty(sim, diameter_nm):
     """Emitters independent of the calibration particles (other positions, 0.3x the
     brightness) localized with the intensity-independent ρ_w. Point emitters: the next test."""

@@ -16,6 +16,11 @@ Three independent parts, added in quadrature:
    particles' own scatter about the field (their size and height), which a held-out error holds
    twice and a spot near one particle once (:func:`field_sigma`).
 
+Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
+scatter about their z(s) curve less than their fit errors say, the camera's noise model
+overstates the noise (a gain too low, or frames averaged before saving) and the fit's part is
+scaled down to the measured scatter.
+
 Part 3 is what the paper's error estimate lacks: its fit residuals at the particles shrink as terms
 are added, while the error between particles grows.
 """
@@ -25,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "fit_sigma_s"]
+__all__ = ["field_sigma", "combine", "fit_sigma_s", "measured_noise"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -178,3 +183,28 @@ def fit_sigma_s(
         ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
         variance = variance + 2 * corr[:, c] * g[:, ka] * g[:, kb]
     return np.sqrt(np.maximum(variance, 0.0))
+
+
+def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_params: int) -> float:
+    """How much less the calibration's own images scatter in z than their fit errors say.
+
+    ``residual_nm`` (n, n_z): each calibration image's z minus its particle's z(s) curve;
+    ``predicted_nm`` (n, n_z): the fit's part of ``z_err_nm`` for that image, as
+    :meth:`~latentz.calibration.Calibration.apply` computes it for a spot (NaN for images not to
+    count); ``n_params``: the parameters of each curve. Returns r = RMS measured (each particle's
+    mean square corrected by ``m / (m − n_params)`` for its ``m`` residuals) over RMS predicted
+    where r is below 1 by more than twice its sampling error (``1/sqrt(2 m)`` for ``m`` images
+    in all), else 1. The curve's lack of fit, stage jitter and flicker only add scatter, so
+    r < 1 means the pixels are less noisy than the camera model says (a gain too low, frames
+    averaged): every fit error, at any brightness, is r times too large.
+    """
+    use = np.isfinite(residual_nm) & np.isfinite(predicted_nm)
+    count = use.sum(axis=1)
+    dof = count / np.maximum(count - n_params, 1)
+    measured2 = np.sum(dof * np.sum(np.where(use, residual_nm, 0.0) ** 2, axis=1))
+    predicted2 = np.sum(np.where(use, predicted_nm, 0.0) ** 2)
+    m = int(count.sum())
+    if m == 0 or predicted2 <= 0:
+        return 1.0
+    ratio = float(np.sqrt(measured2 / predicted2))
+    return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0
