@@ -16,7 +16,9 @@ A-normalised shapes use each emitter's own reference amplitude (``amplitude_refe
 "particle"``, the emitters are of constant brightness). RMSEs are after one global offset per
 axis. Writes ``results/bench_widefield_independent.md``.
 
-Run: ``python benchmarks/bench_widefield_independent.py [--size small] [--cache FILE]``.
+Run: ``python benchmarks/bench_widefield_independent.py [--size small] [--cache FILE]
+[--test-photons LO,HI] [--defaults]``. ``--defaults`` runs issue 12's "defaults only" study
+(:func:`defaults_study`) and writes ``results/bench_widefield_independent_defaults*.md``.
 """
 
 from __future__ import annotations
@@ -56,10 +58,16 @@ def summarise(errors: pd.DataFrame) -> dict[str, float]:
     used = errors[errors["in_range"]].copy()
     for axis in "xyz":
         used[f"err_{axis}_nm"] -= used[f"err_{axis}_nm"].mean()
-    row = {"in range": float(errors["in_range"].mean()), "z": _centred_rms(used["err_z_nm"])}
+    row = {"spots": len(used), "in range": float(errors["in_range"].mean())}
+    row["z"] = _centred_rms(used["err_z_nm"])
     lateral = np.concatenate([used["err_x_nm"], used["err_y_nm"]])
     row["xy"] = float(np.sqrt(np.mean(lateral**2)))
     band = np.abs(used["true_z_nm"].to_numpy())
+    for lo, hi in zip(BANDS_NM[:-1], BANDS_NM[1:], strict=True):
+        sel = (band >= lo) & (band < hi)
+        row[f"z {lo / 1000:.1f}-{hi / 1000:.1f}"] = float(
+            np.sqrt(np.mean(used["err_z_nm"][sel] ** 2))
+        )
     for lo, hi in zip(BANDS_NM[:-1], BANDS_NM[1:], strict=True):
         sel = (band >= lo) & (band < hi)
         both = np.concatenate([used["err_x_nm"][sel], used["err_y_nm"][sel]])
@@ -113,14 +121,16 @@ def idw_baseline(cal, spots: pd.DataFrame, k: int = 4) -> pd.DataFrame:
     return out
 
 
-def noise_free_spots(data, size: str, photons: float | None = None) -> pd.DataFrame:
+def noise_free_spots(
+    data, size: str, photons: float | None = None, roi_size: int = ROI
+) -> pd.DataFrame:
     """``localize_test`` on the test frames without noise (ADU), every emitter with its own
     photons or with ``photons``."""
     truth = data.test_truth if photons is None else data.test_truth.assign(photons=photons)
     images = emitter_images(data.microscope, data.fields, truth, data.frames.shape[1:],
                             data.background, SIZES[size]["patch_px"])  # fmt: skip
     clean = replace(data, frames=images / data.camera.gain + data.camera.offset)
-    return localize_test(clean, roi_size=ROI)
+    return localize_test(clean, roi_size=roi_size)
 
 
 def error_budget(cal, data, truth, spots: pd.DataFrame, size: str) -> pd.DataFrame:
@@ -179,29 +189,14 @@ def load_study(size: str, cache: Path | None, seed: int = 0,
     return data, truth
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", default="full", choices=("full", "small"))
-    parser.add_argument("--cache", type=Path, default=None)
-    parser.add_argument("--shapes", default=",".join(SHAPES))
-    parser.add_argument(
-        "--test-photons",
-        default="1e3,1e4",
-        help="photon range of the test emitters (log-uniform), e.g. 2e4,2e5",
-    )
-    args = parser.parse_args()
-    test_photons = tuple(float(v) for v in args.test_photons.split(","))
-    if len(test_photons) != 2 or not 0 < test_photons[0] <= test_photons[1]:
-        parser.error(f"--test-photons: expected LO,HI with 0 < LO <= HI, got {args.test_photons!r}")
-    warnings.simplefilter("ignore", UserWarning)
-    start = time.perf_counter()
-    data, truth = load_study(args.size, args.cache, test_photons=test_photons)
-    made = time.perf_counter() - start
+def every_model(data, truth, shapes: list[str], size: str) -> str:
+    """Every shape x field model (and ``auto``) at a 15 px ROI, the IDW baseline, and the error
+    budget of ``rho_w`` + ``auto``: the markdown text of the results file."""
     spots = localize_test(data, roi_size=ROI).assign(particle=lambda f: f["emitter"])
     first = calibrate(data.stacks, data.z_nm, camera=data.camera, shape="rho_w",
                       field_model="nearest", roi_size=ROI)  # fmt: skip
     rows = []
-    for shape in args.shapes.split(","):
+    for shape in shapes:
         reference = "particle" if uses_amplitude(shape) else "calibration"
         for kind in (*KINDS, "auto"):
             try:
@@ -214,7 +209,7 @@ def main() -> None:
             located = cal.apply(spots, amplitude_reference=reference)
             chosen = cal.field_model if kind == "auto" else ""
             if kind == "auto" and shape == "rho_w":
-                budget = error_budget(cal, data, truth, spots, args.size)
+                budget = error_budget(cal, data, truth, spots, size)
             row = {"shape": shape, "field model": kind + (f" ({chosen})" if chosen else "")}
             rows.append(row | summarise(score(data, located, truth)))
         base = calibrate_traces(first.traces, camera=data.camera, shape=shape,
@@ -233,22 +228,106 @@ def main() -> None:
             "the calibration's photons minus truth; reported = `z_err_nm`):\n\n"
             + budget.to_markdown(index=False, floatfmt=".3g")
         )
+    return text
+
+
+def defaults_study(data, size: str, cache: Path | None) -> tuple[str, dict[str, str]]:
+    """Issue 12's "defaults only" study: ``calibrate`` with no shape, ROI or field model, the
+    test frames localized with ``localize(calibration=cal)`` (its ROI, shape and model), beside
+    ``nearest`` and the inverse-distance baseline at the same shape and ROI.
+
+    Returns the table (one row per model: the scores of :func:`summarise`, ``z / nearest``, and
+    the z RMSE of the same spots without noise, ``z noise-free``) and what calibrate chose.
+    """
+    cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
+    roi = cal.roi_size
+    truth_cache = None if cache is None else cache.with_name(f"{cache.name}.truth_roi{roi}")
+    if truth_cache is not None and truth_cache.exists():
+        truth = pd.read_pickle(truth_cache)
+    else:
+        truth = study_truth(data, roi_size=roi)
+        if truth_cache is not None:
+            pd.to_pickle(truth, truth_cache)
+    spots = localize_test(data, calibration=cal)
+    near = calibrate_traces(cal.traces, camera=data.camera, shape=cal.shape,
+                            field_model="nearest", roi_size=roi,
+                            field_shape=cal.options["field_shape"])  # fmt: skip
+    clean = noise_free_spots(data, size, roi_size=roi)
+    models = {
+        f"defaults: {cal.field_model}": cal.apply,
+        "nearest": near.apply,
+        "IDW 4-nearest baseline": lambda frame: idw_baseline(near, frame),
+    }
+    rows = []
+    for name, apply in models.items():
+        row = {"field model": name} | summarise(score(data, apply(spots), truth))
+        row["z noise-free"] = summarise(score(data, apply(clean), truth))["z"]
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    table.insert(3, "z / nearest", table["z"] / table.loc[1, "z"])
+    choice = cal.shape_choice or {}
+    chosen = {
+        "ROI": f"{roi} px",
+        "shape": cal.shape + (f" ({choice.get('reason')})" if choice.get("reason") else ""),
+        "field model": cal.field_model,
+        "kept particles": f"{cal.kept.size} of {len(cal.positions)}",
+    }
+    return table.to_markdown(index=False, floatfmt=".3g"), chosen
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="full", choices=("full", "small"))
+    parser.add_argument("--cache", type=Path, default=None)
+    parser.add_argument("--shapes", default=",".join(SHAPES))
+    parser.add_argument(
+        "--test-photons",
+        default="1e3,1e4",
+        help="photon range of the test emitters (log-uniform), e.g. 2e4,2e5",
+    )
+    parser.add_argument(
+        "--defaults",
+        action="store_true",
+        help="calibrate and localize with defaults only (ROI, shape, field model from the data), "
+        "beside nearest at the same shape and ROI",
+    )
+    args = parser.parse_args()
+    test_photons = tuple(float(v) for v in args.test_photons.split(","))
+    if len(test_photons) != 2 or not 0 < test_photons[0] <= test_photons[1]:
+        parser.error(f"--test-photons: expected LO,HI with 0 < LO <= HI, got {args.test_photons!r}")
+    warnings.simplefilter("ignore", UserWarning)
+    start = time.perf_counter()
+    data, truth = load_study(args.size, args.cache, test_photons=test_photons)
+    made = time.perf_counter() - start
+    if args.defaults:
+        text, chosen = defaults_study(data, args.size, args.cache)
+        for key, value in chosen.items():
+            print(f"{key}: {value}")
+        text = (
+            "Chosen by `calibrate`: "
+            + "; ".join(f"{k} {v}" for k, v in chosen.items())
+            + (".\n\n" + text)
+        )
+    else:
+        text = every_model(data, truth, args.shapes.split(","), args.size)
     print(text)
     OUT.mkdir(exist_ok=True)
     header = (
         "# Widefield accuracy on the independent validation microscope\n\n"
         f"`python benchmarks/bench_widefield_independent.py {' '.join(sys.argv[1:])}` "
         f"(data and truth: {made:.0f} s; total {time.perf_counter() - start:.0f} s on a shared "
-        f"machine). {len(spots)} test spots of "
-        f"{data.test_truth['emitter'].nunique()} point emitters; "
+        f"machine). Test spots of {data.test_truth['emitter'].nunique()} point emitters; "
         f"{len(data.calibration_truth)} calibration beads; test emitters of "
         f"{test_photons[0]:g}-{test_photons[1]:g} photons. RMSE in nm after one global offset "
-        "per axis; `xy a-b`: lateral RMSE (x and y pooled) for a <= |true z| < b µm; `cov`: "
+        "per axis; `z a-b`: z RMSE for a <= |true z| < b µm (same offset); `xy a-b`: lateral "
+        "RMSE (x and y pooled) for a <= |true z| < b µm; `cov`: "
         "fraction of errors within the reported 1σ.\n\n"
     )
     suffix = "" if args.size == "full" else f"_{args.size}"
     if test_photons != (1e3, 1e4):
         suffix += f"_photons_{test_photons[0]:.0e}_{test_photons[1]:.0e}".replace("+0", "")
+    if args.defaults:
+        suffix = f"_defaults{suffix}"
     (OUT / f"bench_widefield_independent{suffix}.md").write_text(header + text + "\n")
 
 

@@ -46,3 +46,22 @@ def small_microscope(tmp_path_factory) -> SmallMicroscope:
     )
     tifffile.imwrite(folder / "movie.tif", gear.frames)
     return SmallMicroscope(folder, data, gear)
+
+
+@pytest.fixture(scope="session")
+def small_calibration(small_microscope):
+    """The small microscope's calibration with the nearest particle's models, made once for the
+    tests that only apply it (treat it as read-only)."""
+    from latentz.calibration import calibrate
+
+    data = small_microscope.calibration
+    return calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
+
+
+@pytest.fixture(scope="session")
+def small_zernike_calibration(small_microscope):
+    """The small microscope's calibration with the Zernike field model, made once (read-only)."""
+    from latentz.calibration import calibrate
+
+    data = small_microscope.calibration
+    return calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="zernike")

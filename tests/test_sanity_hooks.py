@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from latentz._shared.sanity import LatentzWarning
-from latentz.calibration import calibrate
 from latentz.camera import Camera
 from latentz.localization import localize
 
@@ -21,9 +20,8 @@ def test_offset_above_the_image_median_warns():
         localize(frames, camera=Camera(offset=10.0))
 
 
-def test_spot_widths_far_outside_the_calibration_warn(small_microscope):
-    data = small_microscope.calibration
-    cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
+def test_spot_widths_far_outside_the_calibration_warn(small_calibration):
+    cal = small_calibration
     spots = cal.traces.planes(slice(10, 11))
     from latentz.calibration.traces import traces_table
 

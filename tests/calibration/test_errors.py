@@ -1,6 +1,7 @@
 """The field part of the reported errors (:func:`latentz.calibration.errors.field_sigma`) on
 held-out tables of known make-up: a field error that grows in proportion to the distance, a
-floor for a smoothing model, and the local models' part that must not be counted twice."""
+floor for a smoothing model, half the floor (the particles' own scatter, held twice in a held-out
+error) for an interpolating one, and the local models' part that must not be counted twice."""
 
 import numpy as np
 import pandas as pd
@@ -28,10 +29,22 @@ def test_a_smoothing_model_has_a_floor_and_a_growth(distance_px):
     assert sigma[0] == pytest.approx(np.hypot(20.0, distance_px), rel=TOL + 0.1)
 
 
-def test_an_interpolating_model_is_exact_at_its_particles():
-    table = _table("nearest", floor_nm=0.0, per_px_nm=1.5, local_nm=0.0, seed=2)
-    sigma = field_sigma(table, "nearest", "z", np.zeros(3), np.array([0.0, 10.0, 30.0]))
-    np.testing.assert_allclose(sigma, [0.0, 15.0, 45.0], rtol=TOL)
+@pytest.mark.parametrize("floor_nm", [0.0, 20.0])
+def test_an_interpolating_model_adds_one_particles_scatter(floor_nm):
+    """Held-out errors of an interpolating model hold two particles' scatter about the field
+    (the held-out one's and its neighbour's), a spot only its neighbour's: half the floor."""
+    table = _table("nearest", floor_nm=floor_nm, per_px_nm=1.5, local_nm=0.0, seed=2)
+    d = np.array([0.0, 10.0, 30.0])
+    sigma = field_sigma(table, "nearest", "z", np.zeros(3), d, bin_nm=2000.0)  # one z bin
+    expected = np.sqrt(floor_nm**2 / 2 + (1.5 * d) ** 2)
+    np.testing.assert_allclose(sigma[1:], expected[1:], rtol=TOL + 0.1)
+    # at a particle, the floor alone: 4 standard errors of the least-squares intercept of
+    # err² on d² (var err² = 2 sd⁴), halved
+    d2 = table["distance_px"].to_numpy() ** 2
+    sd2 = floor_nm**2 + 1.5**2 * d2
+    lever = 1 / N - np.mean(d2) * (d2 - np.mean(d2)) / (N * np.var(d2))
+    se = np.sqrt(np.sum(lever**2 * 2 * sd2**2))
+    assert abs(sigma[0] ** 2 - floor_nm**2 / 2) <= 4 * se / 2
 
 
 def test_the_local_models_part_is_not_counted_in_the_field_part():
@@ -40,10 +53,8 @@ def test_the_local_models_part_is_not_counted_in_the_field_part():
     with_local = field_sigma(table, "nearest", "z", np.zeros(1), np.full(1, 20.0))
     without = field_sigma(table, "nearest", "z", np.zeros(1), np.full(1, 20.0), model_nm=local)
     assert without[0] == pytest.approx(20.0, rel=TOL + 0.05)
-    # counted in, it would grow with distance: its mean square here by sqrt(1 + 2·20² / mean d²)
-    # ≈ 1.5, which the coverage scale shrinks to about 1.2 (a line through the origin misfits
-    # a constant part: the errors near d = 0 are many σ of it)
-    assert with_local[0] > 1.15 * without[0]
+    # counted in, it would be a floor of 2·20² nm², half of it added: sqrt(2) times as large
+    assert with_local[0] > 1.3 * without[0]
 
 
 def test_one_sigma_covers_68_percent_of_heavy_tailed_errors():

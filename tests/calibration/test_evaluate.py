@@ -2,13 +2,17 @@
 local models are known to vary smoothly across the field."""
 
 import numpy as np
+import pytest
 
-from latentz.calibration import calibrate
+
+@pytest.fixture(scope="module")
+def cal(small_zernike_calibration):
+    """One calibration for the module: ``evaluate`` builds every field model it scores from the
+    local models, whatever the calibration's own field model."""
+    return small_zernike_calibration
 
 
-def test_evaluate_reports_every_model_axis_and_region(small_microscope):
-    data = small_microscope.calibration
-    cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="zernike")
+def test_evaluate_reports_every_model_axis_and_region(cal):
     errors = cal.evaluate(n_z=9, n_s=11)
     assert set(errors["model"]) == {"zernike", "natural", "curves", "nearest"}
     assert set(errors["axis"]) == {"x", "y", "z"}
@@ -20,13 +24,11 @@ def test_evaluate_reports_every_model_axis_and_region(small_microscope):
     assert lateral.max() < 20.0
     assert lateral["nearest"] >= lateral["natural"]
     assert lateral["nearest"] >= lateral["curves"]
-    figures = cal.evaluate_figures()
+    figures = cal.evaluate_figures(n_z=9, n_s=11)  # the default grid only adds columns
     assert len(figures) == 4 and "Cross-validated errors and reported uncertainties" in figures
 
 
-def test_leave_one_out_of_the_interpolants_equals_a_refit_without_the_particle(small_microscope):
-    data = small_microscope.calibration
-    cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
+def test_leave_one_out_of_the_interpolants_equals_a_refit_without_the_particle(cal):
     errors = cal.evaluate(kinds=("nearest",), n_z=3, n_s=3)
     # nearest neighbour, leave-one-out: each particle's error is its value minus its nearest
     # other particle's value; compute that directly for the middle z column of axis x

@@ -17,7 +17,7 @@ from latentz.fit import (
     photons_of,
     render_rois,
 )
-from latentz.fit._model import model_and_jacobian
+from latentz.fit._model import as_param_array, covariance, model_and_jacobian
 
 
 def _one(**kw):
@@ -86,6 +86,23 @@ def test_read_noise_and_background_raise_the_bound():
     info = fisher_information(table, shape=15)[0]
     np.testing.assert_allclose(info, info.T)
     assert np.all(np.linalg.eigvalsh(info) > 0)
+
+
+def test_covariance_kernel_inverts_the_numpy_fisher_information():
+    table = as_param_array(truth_table(200, 15, seed=6))
+    table[0, 2] = 0.0  # no spot: the position is not identifiable, the information singular
+    info = fisher_information(table, shape=15, readnoise=1.5)
+    cov = covariance(table, shape=15, readnoise=1.5)
+    assert np.all(np.isnan(cov[0]))
+    expected = np.linalg.inv(info[1:])
+    sd = np.sqrt(np.diagonal(expected, 0, 1, 2))
+    # each entry relative to its variances (off-diagonal entries can be near zero)
+    np.testing.assert_allclose(
+        cov[1:] / (sd[:, :, None] * sd[:, None, :]),
+        expected / (sd[:, :, None] * sd[:, None, :]),
+        rtol=0,
+        atol=1e-9,
+    )
 
 
 def test_kernel_start_is_the_twin_of_moment_start():

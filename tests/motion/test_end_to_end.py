@@ -6,7 +6,6 @@ import numpy as np
 import pandas as pd
 from scipy.stats import norm
 
-from latentz.calibration import calibrate
 from latentz.localization import localize
 from latentz.motion import motion_uncertainty
 from latentz.pipeline import track_tables
@@ -14,9 +13,10 @@ from latentz.pipeline import track_tables
 DOF = ["gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm"]
 
 
-def test_six_degrees_of_freedom_agree_with_truth_within_uncertainty(small_microscope):
-    data, gear = small_microscope.calibration, small_microscope.gear
-    cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest")
+def test_six_degrees_of_freedom_agree_with_truth_within_uncertainty(
+    small_microscope, small_calibration
+):
+    gear, cal = small_microscope.gear, small_calibration
     spots = localize(gear.frames, camera=gear.camera, roi_size=15)
     locs = cal.apply(spots[spots["converged"]])
     assert locs["in_range"].mean() > 0.9

@@ -1,20 +1,30 @@
 """Issue 13's Show on real data, defaults only (no shape, ROI, field model or method given):
 the fit3Dcspline bead calibrates on its odd planes and localizes its even planes within ±500 nm;
 the SMLM 2016 AS bead stack calibrates. Truth is on the calibration's axis: z = 0 is the focus
-of the calibration bead, so a plane's true z is its piezo z minus the bead's z_f."""
+of the calibration bead, so a plane's true z is its piezo z minus the bead's z_f.
+
+The bead is calibrated with its documented camera (0.1 e-/ADU), although its pixels vary
+between planes far less than that gain implies (background: 0.3-0.5x their mean in ADU,
+against 10x for Poisson light at 0.1 e-/ADU; frames averaged, or another gain). The bead's own
+calibration images then scatter about their z(s) curve 0.69x (21 px) / 0.57x (15 px crop) as
+much as their fit errors say: calibrate warns, and `Calibration.noise_scale` scales the fit's
+part of z_err_nm by that factor."""
 
 import numpy as np
 import pytest
 from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, smlm_beads
 
 import latentz as lz
+from latentz._shared.sanity import LatentzWarning
 from latentz.calibration.roi import roi_for_width, widest_spot_px
 
 pytestmark = pytest.mark.realdata
 
 
 def _odd_even(stack, z):
-    cal = lz.calibrate(stack[1::2], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
+    with pytest.warns(LatentzWarning, match="scatter in z .* as much as gain 0.1") as record:
+        cal = lz.calibrate(stack[1::2], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
+    assert sum("scatter in z" in str(w.message) for w in record) == 1
     locs = lz.localize(stack[0::2], calibration=cal)
     true_z = z[0::2][locs["frame"].to_numpy()] - cal.particles["z_f"].iloc[0]
     near = (np.abs(true_z) <= 500) & locs["in_range"].to_numpy()
@@ -23,18 +33,9 @@ def _odd_even(stack, z):
 
 
 CROP = (slice(3, 18), slice(3, 18))
-OVER_COVERS = pytest.mark.xfail(
-    strict=True,
-    reason="z_err_nm covers 94 % on the 15 px crop (RMSE 3.1 nm, median z_err 5.9 nm): the "
-    "documented 0.1 e-/ADU makes the noise model predict Poisson variance, but the background "
-    "pixels vary 0.04x their mean between planes and the fitted x, wx, wy scatter 0.3-0.7x "
-    "their reported errors (docs/accuracy.md): the camera settings, not the error model",
-)
 
 
-@pytest.mark.parametrize(
-    "crop", [None, pytest.param(CROP, marks=OVER_COVERS)], ids=["21px", "15px"]
-)
+@pytest.mark.parametrize("crop", [None, CROP], ids=["21px", "15px"])
 def test_fit3d_bead_odd_planes_calibrate_even_planes_localize(crop):
     stack, z = fit3d_bead()
     if crop is not None:

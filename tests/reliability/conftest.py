@@ -10,11 +10,8 @@ settings.load_profile("reliability")
 
 
 @pytest.fixture(scope="session")
-def calibration_file(small_microscope, tmp_path_factory):
+def calibration_file(small_calibration, tmp_path_factory):
     """The small microscope's calibration (nearest-particle models), saved to HDF5."""
-    from latentz.calibration import calibrate
-
-    data = small_microscope.calibration
     path = tmp_path_factory.mktemp("calibration") / "cal.h5"
-    calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="nearest").save(path)
+    small_calibration.save(path)
     return path

@@ -43,9 +43,8 @@ def test_localize_returns_flags_or_raises(kind, dtype, t, h, w, seed):
 
 
 @pytest.fixture(scope="module")
-def cal(small_microscope):
-    data = small_microscope.calibration
-    return calibrate(list(data.stacks), data.z_nm, camera=data.camera, field_model="zernike")
+def cal(small_zernike_calibration):
+    return small_zernike_calibration
 
 
 FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
-from latentz.calibration.errors import combine, field_sigma, fit_sigma_s
+from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measured_noise
 from latentz.calibration.local import LocalModels, row_mean
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
@@ -263,11 +263,12 @@ class Calibration:
 
         return evaluate(self, **options)
 
-    def evaluate_figures(self) -> dict[str, Any]:
-        """Figs. 4 and 5 as matplotlib figures, by name."""
+    def evaluate_figures(self, **options: Any) -> dict[str, Any]:
+        """Figs. 4 and 5 as matplotlib figures, by name; see
+        :func:`latentz.calibration.evaluate.evaluate_figures`."""
         from latentz.calibration.evaluate import evaluate_figures
 
-        return evaluate_figures(self)
+        return evaluate_figures(self, **options)
 
     @property
     def width_range_px(self) -> tuple[float, float]:
@@ -370,15 +371,54 @@ class Calibration:
             self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
         return self._cache[key]
 
-    def _model_sigma(self, axis: str, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+    def _fit_part_z(self, params: np.ndarray, errors: np.ndarray, corr: np.ndarray | None,
+                    p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
+        """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
+        and correlations (:func:`~latentz.calibration.errors.fit_sigma_s`) and shape values
+        ``s``: σ_s through the slope of particle ``p``'s inverse z(s)."""
+        sigma_s = fit_sigma_s(self.shape, params, errors, corr,
+                              roi_size=int(self.options.get("roi_size") or 11),
+                              readnoise=self.camera.readnoise, theta=self.local.theta,
+                              amplitude_ref=ref)  # fmt: skip
+        return np.abs(self._error_model("z")[2][p](s)) * sigma_s
+
+    @property
+    def noise_scale(self) -> float:
+        """Factor (≤ 1) on the fit's part of ``z_err_nm``: the kept particles' usable calibration
+        images against their own fit errors (:func:`~latentz.calibration.errors.
+        measured_noise`); 1 for traces without fit errors."""
+        if "noise_scale" not in self._cache:
+            model, tr, k = self.local.shapes[self.shape], self.traces, self.kept
+            self._cache["noise_scale"] = 1.0
+            if all(c in tr.data for c in _ERROR_COLUMNS) and k.size:
+                n_z = self.local.z_nm.shape[1]
+                params = np.stack([tr[c][k] for c in _PARAMS], axis=-1).reshape(-1, 7)
+                errors = np.stack([tr[c][k] for c in _ERROR_COLUMNS], axis=-1).reshape(-1, 4)
+                corr = np.stack([tr.data.get(c, np.full(tr["x"].shape, np.nan))[k]
+                                 for c in CORRELATION_COLUMNS], axis=-1).reshape(-1, 6)  # fmt: skip
+                use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
+                p = np.repeat(k, n_z)
+                s = np.where(use, model.values[k], 0.0).ravel()
+                part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
+                predicted = np.where(use, part.reshape(len(k), n_z), np.nan)
+                residual = model.inverse[k].residuals(model.values[k], self.local.z_nm[k])
+                self._cache["noise_scale"] = measured_noise(
+                    residual, predicted, n_params=model.inverse.order + 1
+                )
+        return self._cache["noise_scale"]
+
+    def _model_sigma(
+        self, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
+    ) -> np.ndarray:
         """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
-        its residual σ at that z over the square root of its planes per polynomial parameter."""
+        its residual σ at that z over the square root of its planes per polynomial parameter
+        (``at``: :func:`_row_weights` of p and z, if known)."""
         sigma, count, _ = self._error_model(axis)
         if axis == "z":
             order = self.local.shapes[self.shape].inverse.order
         else:
             order = (self.local.dx if axis == "x" else self.local.dy).order
-        return _interp_rows(self.local.z_nm, sigma, p, z) * np.sqrt(
+        return _interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
             (order + 1) / np.maximum(count[p], 1)
         )
 
@@ -424,10 +464,10 @@ class Calibration:
         from latentz.calibration.dimming import shape_shift
 
         s2 = self.camera.readnoise**2
-        zq = np.where(np.isfinite(z), z, np.nan)
+        at = _row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
-            return _interp_rows(self.local.z_nm, self.traces[name], p, zq)
+            return _interp_rows(self.local.z_nm, self.traces[name], p, z, at)
 
         def shape_of(a, wx, wy, rho):
             return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
@@ -460,7 +500,8 @@ class Calibration:
         ``field_model="nearest"``, from the nearest calibration particle's local models.
         Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
         nearest particle's local model errors and the field model's cross-validated error
-        (:mod:`latentz.calibration.errors`).
+        (:mod:`latentz.calibration.errors`); the spots' own part is scaled by
+        :attr:`noise_scale` where the calibration images show less noise than their fits say.
 
         Parameters
         ----------
@@ -508,25 +549,16 @@ class Calibration:
             s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
-        z_slope = self._error_model("z")[2]
-        model_part = self._model_sigma("z", p, z)
+        at = _row_weights(self.local.z_nm, p, z)
+        model_part = self._model_sigma("z", p, z, at)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
-            sigma_s = fit_sigma_s(
-                shape,
-                params,
-                spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64),
-                corr,
-                roi_size=int(self.options.get("roi_size") or 11),
-                readnoise=self.camera.readnoise,
-                theta=theta,
-                amplitude_ref=ref,
-            )
-            slope = z_slope[p](np.where(in_range, s, 0.0))
-            z_err = np.hypot(slope * sigma_s, model_part)
+            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
+            fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
+            z_err = np.hypot(self.noise_scale * fit_part, model_part)
         else:
-            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z)
+            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
@@ -534,11 +566,11 @@ class Calibration:
             d_slope = self._error_model(axis)[2]
             shift = delta[p](zq) if shifts is None else shifts[axis]
             slope = d_slope[p](zq)
-            model_d = self._model_sigma(axis, p, z)
+            model_d = self._model_sigma(axis, p, z, at)
             if f"{axis}_err" in spots:
                 own = spots[f"{axis}_err"].to_numpy(float)
             else:
-                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z)
+                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
             field_d = self._field_sigma(axis, z, distance)  # nm
             err = combine(own * px, model_d * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
@@ -569,10 +601,12 @@ def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.n
     return frame["track"].map(lookup).to_numpy(dtype=np.float64)
 
 
-def _interp_rows(
-    z_grid: np.ndarray, values: np.ndarray, rows: np.ndarray, z: np.ndarray
-) -> np.ndarray:
-    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``.
+def _row_weights(
+    z_grid: np.ndarray, rows: np.ndarray, z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where :func:`_interp_rows` reads each point: the rows, the upper plane index j and the
+    weight w of plane j (1 − w of plane j − 1); computed once for every trace read at the same
+    points.
 
     Every row of ``z_grid`` (n, n_z) is the same increasing grid of piezo planes minus one shift
     (the particle's tilt plane), so each point interpolates on the first row after undoing its
@@ -582,6 +616,19 @@ def _interp_rows(
     u = z + (base[0] - z_grid[:, 0])[rows]
     j = np.clip(np.searchsorted(base, np.where(np.isfinite(u), u, -np.inf)), 1, base.size - 1)
     w = np.clip((u - base[j - 1]) / (base[j] - base[j - 1]), 0.0, 1.0)
+    return rows, j, w
+
+
+def _interp_rows(
+    z_grid: np.ndarray,
+    values: np.ndarray,
+    rows: np.ndarray,
+    z: np.ndarray,
+    at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``;
+    ``at``: :func:`_row_weights` of these rows and z, if already known."""
+    rows, j, w = _row_weights(z_grid, rows, z) if at is None else at
     return (1 - w) * values[rows, j - 1] + w * values[rows, j]
 
 

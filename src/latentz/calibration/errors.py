@@ -10,9 +10,16 @@ Three independent parts, added in quadrature:
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter);
 3. **the field model's error**: how wrong the model of the field is between calibration
-   particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): the RMS of the
-   held-out errors of the chosen field model per pixel of distance to the nearest particle, in
-   bins of z, times the spot's own distance to its nearest particle (:func:`field_sigma`).
+   particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
+   the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
+   distance d to the nearest particle, evaluated at the spot's own distance; ``a²`` is the
+   particles' own scatter about the field (their size and height), which a held-out error holds
+   twice and a spot near one particle once (:func:`field_sigma`).
+
+Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
+scatter about their z(s) curve less than their fit errors say, the camera's noise model
+overstates the noise (a gain too low, or frames averaged before saving) and the fit's part is
+scaled down to the measured scatter.
 
 Part 3 is what the paper's error estimate lacks: its fit residuals at the particles shrink as terms
 are added, while the error between particles grows.
@@ -23,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "fit_sigma_s"]
+__all__ = ["field_sigma", "combine", "fit_sigma_s", "measured_noise"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -39,18 +46,23 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     """Field-model error (nm, 1σ) of ``model`` on ``axis`` ("x", "y" or "z") at each z and
     distance from the nearest calibration particle.
 
-    A field model that passes through its particles (``nearest``, ``natural``) errs more the
-    farther a spot is from them: for a smooth field, in proportion to that distance d. A model
-    that smooths over them (:data:`SMOOTHING`: a few Zernike terms over the whole field) also
-    misses the field at the particles themselves, by about the same everywhere. So the squared
-    error is taken as ``a² + b² d²``, with ``a = 0`` for a model that passes through its
-    particles: the held-out errors of ``table`` (:func:`~latentz.calibration.crossval.
+    Every model errs more the farther a spot is from the particles (for a smooth field, in
+    proportion to that distance d), and by about the same at any distance where the particles
+    themselves scatter about the field (each particle's own size, height and shape: a 1 µm bead
+    of ±24 nm diameter sits ±12 nm off the surface). So the squared error is taken as
+    ``a² + b² d²``: the held-out errors of ``table`` (:func:`~latentz.calibration.crossval.
     crossval`) are binned in z (``bin_nm`` wide, merged until each holds :data:`MIN_PER_BIN`
     planes), and in each bin ``a²`` and ``b²`` are the least-squares line of the squared errors
-    against the squared held-out distances (:func:`_floor_and_slope`; neither negative), or
-    ``b² = mean(err²) / mean(d²)``. They are interpolated linearly at ``z_nm`` (held constant
-    beyond the end bins) and evaluated at ``distance_px``. Planes the model did not predict do
-    not count. NaN z gives NaN.
+    against the squared held-out distances (:func:`_floor_and_slope`; neither negative). A model
+    that passes through its particles (``nearest``, ``natural``, ``curves``) errs at a spot by
+    its particles' scatter, which a held-out error holds twice (the held-out particle's own, in
+    the "truth" it is compared with, and its neighbours'), so ``a²/2`` is added; for
+    ``natural`` and ``curves``, which average several neighbours, that is an upper bound. A
+    model that smooths over them (:data:`SMOOTHING`: a few Zernike terms over the whole field)
+    also misses the field at the particles themselves, and the whole ``a²`` is added. ``a²``
+    and ``b²`` are interpolated linearly at ``z_nm`` (held constant beyond the end bins) and
+    evaluated at ``distance_px``. Planes the model did not predict do not count. NaN z gives
+    NaN.
 
     ``model_nm`` (one per row of ``table``) is the 1σ of the held-out particle's own local model
     at that plane. A held-out error is the field model's error plus two local-model errors that
@@ -78,23 +90,23 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
     centres, values, first = [], [], 0
-    floor = model in SMOOTHING
     for end in ends:  # merge consecutive bins until each holds enough planes
         if end - first >= MIN_PER_BIN or (end == zz.size and not values):
             centres.append(np.mean(zz[first:end]))
             part = slice(first, end)
-            values.append(_covering(err2[part], dist2[part], local2[part], floor))
+            values.append(_covering(err2[part], dist2[part], local2[part]))
             first = end
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
-        values[-1] = _covering(err2[last], dist2[last], local2[last], floor)
+        values[-1] = _covering(err2[last], dist2[last], local2[last])
     floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
+    if model not in SMOOTHING:
+        floor2 = floor2 / 2  # the spot's neighbours' scatter, not the held-out particle's too
     d2 = np.asarray(distance_px, dtype=np.float64) ** 2
     return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
 
 
-def _covering(err2: np.ndarray, dist2: np.ndarray, local2: np.ndarray,
-              floor: bool) -> tuple[float, float]:  # fmt: skip
+def _covering(err2: np.ndarray, dist2: np.ndarray, local2: np.ndarray) -> tuple[float, float]:
     """``(a², b²)`` of :func:`_floor_and_slope`, scaled so that 1σ covers :data:`ONE_SIGMA` of
     the held-out errors rather than matching their mean square.
 
@@ -104,7 +116,7 @@ def _covering(err2: np.ndarray, dist2: np.ndarray, local2: np.ndarray,
     ``local2`` that was subtracted from it) is χ²₁ for normal errors, whose :data:`ONE_SIGMA`
     quantile and mean are both 1; the scale is their ratio (1 for normal errors).
     """
-    a2, b2 = _floor_and_slope(err2, dist2, floor)
+    a2, b2 = _floor_and_slope(err2, dist2)
     variance = a2 + b2 * dist2 + local2
     if not np.all(variance > 0):
         return a2, b2
@@ -113,16 +125,13 @@ def _covering(err2: np.ndarray, dist2: np.ndarray, local2: np.ndarray,
     return a2 * scale, b2 * scale
 
 
-def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray, floor: bool) -> tuple[float, float]:
+def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
     """``(a², b²)`` of the least-squares line ``err² = a² + b² d²`` (``dist2`` = d²), neither
-    negative: with a negative slope the mean square alone, with a negative floor (or without
-    ``floor``) the line through the origin that keeps the mean square, ``b² = mean(err²) /
-    mean(d²)``."""
+    negative: with a negative slope the mean square alone, with a negative floor the line
+    through the origin that keeps the mean square, ``b² = mean(err²) / mean(d²)``."""
     mean_e, mean_d = max(float(np.mean(err2)), 0.0), float(np.mean(dist2))
     if mean_d <= 0:  # held out at the particles' own places: no growth to measure
         return mean_e, 0.0
-    if not floor:
-        return 0.0, mean_e / mean_d
     spread = float(np.mean((dist2 - mean_d) ** 2))
     slope = float(np.mean((dist2 - mean_d) * (err2 - np.mean(err2)))) / spread if spread else 0.0
     if slope <= 0:
@@ -198,3 +207,28 @@ def fit_sigma_s(
         ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
         variance = variance + 2 * corr[:, c] * g[:, ka] * g[:, kb]
     return np.sqrt(np.maximum(variance, 0.0))
+
+
+def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_params: int) -> float:
+    """How much less the calibration's own images scatter in z than their fit errors say.
+
+    ``residual_nm`` (n, n_z): each calibration image's z minus its particle's z(s) curve;
+    ``predicted_nm`` (n, n_z): the fit's part of ``z_err_nm`` for that image, as
+    :meth:`~latentz.calibration.Calibration.apply` computes it for a spot (NaN for images not to
+    count); ``n_params``: the parameters of each curve. Returns r = RMS measured (each particle's
+    mean square corrected by ``m / (m − n_params)`` for its ``m`` residuals) over RMS predicted
+    where r is below 1 by more than twice its sampling error (``1/sqrt(2 m)`` for ``m`` images
+    in all), else 1. The curve's lack of fit, stage jitter and flicker only add scatter, so
+    r < 1 means the pixels are less noisy than the camera model says (a gain too low, frames
+    averaged): every fit error, at any brightness, is r times too large.
+    """
+    use = np.isfinite(residual_nm) & np.isfinite(predicted_nm)
+    count = use.sum(axis=1)
+    dof = count / np.maximum(count - n_params, 1)
+    measured2 = np.sum(dof * np.sum(np.where(use, residual_nm, 0.0) ** 2, axis=1))
+    predicted2 = np.sum(np.where(use, predicted_nm, 0.0) ** 2)
+    m = int(count.sum())
+    if m == 0 or predicted2 <= 0:
+        return 1.0
+    ratio = float(np.sqrt(measured2 / predicted2))
+    return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0

@@ -90,13 +90,14 @@ def _evaluate(cal, kinds, n_z, n_s, leave_one_out):
     return pd.concat(parts, ignore_index=True), residuals
 
 
-def evaluate_figures(cal: Calibration) -> dict[str, Any]:
+def evaluate_figures(cal: Calibration, *, n_z: int = 41, n_s: int = 81) -> dict[str, Any]:
     """Fig. 5 (RMS error against z per model and axis, square and circle), Supp. Figs. 11–14
     (error maps and histograms with their excess kurtosis) and Fig. 4 (vector map of the
-    apparent lateral motion between two z, and the surface of best focus)."""
+    apparent lateral motion between two z, and the surface of best focus); the errors on
+    :func:`evaluate`'s grid of ``n_z`` z and ``n_s`` shape values."""
     import matplotlib.pyplot as plt
 
-    errors, residuals = _evaluate(cal, FIELD_MODELS, 41, 81, None)
+    errors, residuals = _evaluate(cal, FIELD_MODELS, n_z, n_s, None)
     fig5, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
     for col, axis in enumerate("xyz"):
         for row, region in enumerate(("square", "circle")):

@@ -370,7 +370,7 @@ def calibrate_traces(
         "sources": [str(x) for x in sources] if sources is not None else [],
         **{k: getattr(local_options, k) for k in LocalOptions.__dataclass_fields__},
     }
-    return Calibration(
+    cal = Calibration(
         camera=camera,
         traces=traces,
         local=local.shifted(plane(*substrate_nm.T)),
@@ -380,6 +380,26 @@ def calibrate_traces(
         scores=scores,
         options=options_used,
     )
+    _check_noise(cal)
+    return cal
+
+
+#: ``noise_scale`` below which :func:`calibrate` warns: the images' variance under half the
+#: camera model's.
+NOISE_WARNING_SCALE = 1 / np.sqrt(2)
+
+
+def _check_noise(cal: Calibration) -> None:
+    """Say so when the calibration images scatter much less than the camera's gain implies
+    (:attr:`Calibration.noise_scale`)."""
+    scale, gain = cal.noise_scale, cal.camera.gain
+    if scale < NOISE_WARNING_SCALE:
+        warn(
+            f"The calibration images scatter in z {scale:.2f}x as much as gain {gain:.3g} e-/ADU "
+            f"predicts: the frames were averaged, or the gain is too low (the images behave as "
+            f"if it were at least {gain / scale**2:.2g} e-/ADU); z errors are scaled by "
+            f"{scale:.2f}. Give that effective gain (--gain, or Camera(gain=...)) to use it."
+        )
 
 
 def _check_offset(camera: Camera, stacks: list[np.ndarray]) -> None:

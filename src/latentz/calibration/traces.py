@@ -20,6 +20,7 @@ import pandas as pd
 from latentz._shared.validate import check_array, check_int, check_positive
 from latentz.calibration.dimming import DIM_COLUMNS, dim_fits
 from latentz.camera import Camera
+from latentz.fit.api import CORRELATION_COLUMNS
 
 __all__ = ["Traces", "find_particles", "extract_traces", "TRACE_COLUMNS"]
 
@@ -39,6 +40,7 @@ TRACE_COLUMNS = (
     "wx_err",
     "wy_err",
     "rho_err",
+    *CORRELATION_COLUMNS,
 )
 
 
@@ -72,7 +74,8 @@ class Traces:
         data = {}
         for name in (*TRACE_COLUMNS, *DIM_COLUMNS, "converged"):
             if name not in self.data:
-                if name in ("converged", "photons", *DIM_COLUMNS) or name.endswith("_err"):
+                optional = name.endswith(("_err", "_corr"))
+                if name in ("converged", "photons", *DIM_COLUMNS) or optional:
                     continue
                 raise ValueError(f"Traces need a {name!r} array.")
             arr = np.asarray(self.data[name])
@@ -215,7 +218,9 @@ def _fit_stack(
         method=method,
         camera=fit_camera,
         device=device,
-        errors="crlb",  # calibration uses the parameters; its precision is computed apart
+        # the errors a spot of `localize` carries: Calibration.noise_scale compares them with
+        # the scatter of these fits about the calibration curve
+        errors="sandwich",
     )
     out = {}
     for name in (*TRACE_COLUMNS, "converged"):

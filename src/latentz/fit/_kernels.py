@@ -603,6 +603,38 @@ def _fit_one(
     )  # fmt: skip
 
 
+@numba.njit(parallel=True, cache=True)
+def fisher_batch(params, h, w, s2, n_chunks, out):
+    """Fisher information (n, 7, 7) in the *natural* parameters of eq. 1 at each row of
+    ``params`` (n, 7, natural) in an ``h`` x ``w`` ROI with read-noise variance ``s2``, written
+    into ``out``: ``sum grad(mu) grad(mu)^T / (mu + s2)``, the kernel twin of
+    :func:`latentz.fit._model.fisher_information` (`_evaluate`'s information, which does not
+    depend on the data, rescaled from the internal parameters)."""
+    n = params.shape[0]
+    for c in numba.prange(n_chunks):
+        roi = np.zeros((h, w))
+        scratch = np.zeros((4, h * w))
+        grad = np.empty(_NP)
+        p = np.empty(_NP)
+        scale = np.ones(_NP)
+        for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            for m in range(4):
+                p[m] = params[k, m]
+            p[4] = math.log(params[k, 4])
+            p[5] = math.log(params[k, 5])
+            p[6] = math.atanh(params[k, 6])
+            # d(log wx) = d wx / wx, d(atanh rho) = d rho / (1 - rho^2)
+            scale[4] = params[k, 4]
+            scale[5] = params[k, 5]
+            scale[6] = 1.0 - params[k, 6] * params[k, 6]
+            info = out[k]
+            _evaluate(roi, p, WLSQ, s2, 1.0, scratch[0], scratch[1], scratch[2], scratch[3],
+                      info, grad)  # fmt: skip
+            for a in range(_NP):
+                for b in range(_NP):
+                    info[a, b] /= scale[a] * scale[b]
+
+
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _finish(
     roi, p, lower_b, upper_b, method, s2, scale, scratch, hess, grad, mats, vecs,

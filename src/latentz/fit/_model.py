@@ -236,10 +236,28 @@ def covariance(
     max_condition: float = 1e12,
 ) -> np.ndarray:
     """Inverse Fisher information (n, 7, 7) of the natural parameters, per ROI: the Cramér–Rao
-    covariance; NaN where the information's condition number is ``max_condition`` or more."""
-    info = fisher_information(params, shape=shape, readnoise=readnoise)
+    covariance; NaN where the information's condition number is ``max_condition`` or more.
+
+    The information is that of :func:`fisher_information`, computed by the numba kernel
+    (:func:`._kernels.fisher_batch`, the same sums in one pass per ROI: calibration asks for
+    it at every image)."""
+    import numba
+
+    from latentz.fit._kernels import fisher_batch
+
+    array = np.ascontiguousarray(as_param_array(params), dtype=np.float64)
+    h, w = _check_shape(shape)
+    info = np.empty((len(array), N_PARAMS, N_PARAMS))
+    if len(array):
+        fisher_batch(array, h, w, float(readnoise) ** 2,
+                     min(len(array), 64 * numba.get_num_threads()), info)  # fmt: skip
     out = np.full(info.shape, np.nan)
-    usable = np.linalg.cond(info) < max_condition
+    usable = np.all(np.isfinite(info), axis=(1, 2))
+    # the information is symmetric: its condition number is that of its eigenvalues (the SVD
+    # of np.linalg.cond costs as much as the information itself)
+    eig = np.abs(np.linalg.eigvalsh(info[usable]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        usable[usable] = eig.max(axis=1) / eig.min(axis=1) < max_condition
     out[usable] = np.linalg.inv(info[usable])
     return out
 

@@ -98,12 +98,19 @@ def _plane(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(design, z, rcond=None)[0]
 
 
-def localize_test(data: ValidationData, *, roi_size: int, max_px: float = 2.0) -> pd.DataFrame:
-    """Detect and fit the test frames with :func:`latentz.localization.localize`; keep
+def localize_test(
+    data: ValidationData,
+    *,
+    roi_size: int | None = None,
+    max_px: float = 2.0,
+    calibration: Any = None,
+) -> pd.DataFrame:
+    """Detect and fit the test frames with :func:`latentz.localization.localize` (with
+    ``calibration``, its ROI unless ``roi_size`` is given, and its 3D localizations); keep
     converged, isolated spots matched to an emitter within ``max_px`` (``emitter`` column)."""
     from latentz.localization import localize
 
-    found = localize(data.frames, camera=data.camera, roi_size=roi_size)
+    found = localize(data.frames, calibration=calibration, camera=data.camera, roi_size=roi_size)
     found = found[found["converged"] & ~found["close_pair"] & ~found["edge"]]
     emitters = data.test_truth.drop_duplicates("emitter")
     dist, idx = cKDTree(emitters[["x", "y"]].to_numpy()).query(found[["x", "y"]].to_numpy())
