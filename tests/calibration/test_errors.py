@@ -55,19 +55,3 @@ def test_the_local_models_part_is_not_counted_in_the_field_part():
     assert without[0] == pytest.approx(20.0, rel=TOL + 0.05)
     # counted in, it would be a floor of 2·20² nm², half of it added: sqrt(2) times as large
     assert with_local[0] > 1.3 * without[0]
-
-
-def test_one_sigma_covers_68_percent_of_heavy_tailed_errors():
-    """A tenth of the held-out planes (the ends of the particles' ranges) err by 6× the rest: the
-    mean square is 2× their 68 % quantile; the field σ must cover 68 % of such errors."""
-    rng = np.random.default_rng(4)
-
-    def errors(n):
-        return rng.normal(0.0, np.where(rng.random(n) < 0.1, 60.0, 10.0))
-
-    table = _table("zernike", floor_nm=10.0, per_px_nm=0.0, local_nm=0.0, seed=4)
-    table["err_z_nm"] = errors(N)
-    sigma = field_sigma(table, "zernike", "z", np.zeros(1), np.full(1, 22.5))[0]
-    fresh = errors(N)
-    coverage = np.mean(np.abs(fresh) <= sigma)
-    assert coverage == pytest.approx(0.6827, abs=4 * np.sqrt(0.6827 * 0.3173 / N) + 0.02)

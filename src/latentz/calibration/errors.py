@@ -34,8 +34,6 @@ __all__ = ["field_sigma", "combine", "fit_sigma_s", "measured_noise"]
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
-#: The fraction of errors that a 1σ uncertainty covers for normal errors.
-ONE_SIGMA = 0.6827
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
 
@@ -81,11 +79,9 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     order = np.argsort(rows["z_nm"].to_numpy())
     zz = rows["z_nm"].to_numpy()[order]
     err2 = rows[f"err_{axis}_nm"].to_numpy()[order] ** 2
-    local2 = np.zeros(err2.shape)
     if model_nm is not None:
         known = np.asarray(model_nm, dtype=np.float64)[use][order]
-        local2 = 2 * np.where(np.isfinite(known), known, 0.0) ** 2
-        err2 = err2 - local2
+        err2 = err2 - 2 * np.where(np.isfinite(known), known, 0.0) ** 2
     dist2 = rows["distance_px"].to_numpy()[order] ** 2
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
@@ -93,36 +89,16 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     for end in ends:  # merge consecutive bins until each holds enough planes
         if end - first >= MIN_PER_BIN or (end == zz.size and not values):
             centres.append(np.mean(zz[first:end]))
-            part = slice(first, end)
-            values.append(_covering(err2[part], dist2[part], local2[part]))
+            values.append(_floor_and_slope(err2[first:end], dist2[first:end]))
             first = end
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
-        values[-1] = _covering(err2[last], dist2[last], local2[last])
+        values[-1] = _floor_and_slope(err2[last], dist2[last])
     floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
     if model not in SMOOTHING:
         floor2 = floor2 / 2  # the spot's neighbours' scatter, not the held-out particle's too
     d2 = np.asarray(distance_px, dtype=np.float64) ** 2
     return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
-
-
-def _covering(err2: np.ndarray, dist2: np.ndarray, local2: np.ndarray) -> tuple[float, float]:
-    """``(a², b²)`` of :func:`_floor_and_slope`, scaled so that 1σ covers :data:`ONE_SIGMA` of
-    the held-out errors rather than matching their mean square.
-
-    The held-out errors have heavy tails (a few planes near the ends of the particles' monotonic
-    ranges err by several times the rest), which rule a mean square but not a coverage. Each
-    squared error over its modelled variance (``a² + b² d²`` plus the local models' part
-    ``local2`` that was subtracted from it) is χ²₁ for normal errors, whose :data:`ONE_SIGMA`
-    quantile and mean are both 1; the scale is their ratio (1 for normal errors).
-    """
-    a2, b2 = _floor_and_slope(err2, dist2)
-    variance = a2 + b2 * dist2 + local2
-    if not np.all(variance > 0):
-        return a2, b2
-    ratio = (err2 + local2) / variance
-    scale = float(np.quantile(ratio, ONE_SIGMA)) / float(np.mean(ratio))
-    return a2 * scale, b2 * scale
 
 
 def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
