@@ -191,20 +191,21 @@ def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_param
     ``residual_nm`` (n, n_z): each calibration image's z minus its particle's z(s) curve;
     ``predicted_nm`` (n, n_z): the fit's part of ``z_err_nm`` for that image, as
     :meth:`~latentz.calibration.Calibration.apply` computes it for a spot (NaN for images not to
-    count); ``n_params``: the parameters of each curve. Returns r = RMS measured (each particle's
-    mean square corrected by ``m / (m − n_params)`` for its ``m`` residuals) over RMS predicted
-    where r is below 1 by more than twice its sampling error (``1/sqrt(2 m)`` for ``m`` images
-    in all), else 1. The curve's lack of fit, stage jitter and flicker only add scatter, so
+    count); ``n_params``: the parameters of each curve. Returns r, the root mean square of each
+    image's residual over its predicted error (each particle's squares corrected by
+    ``m / (m − n_params)`` for its ``m`` residuals), where r is below 1 by more than twice its
+    sampling error (``1/sqrt(2 m)`` for ``m`` images in all), else 1. Each image counts once: a
+    ratio of RMS values would be ruled by the few planes where the curve is flat and the
+    predicted error huge. The curve's lack of fit, stage jitter and flicker only add scatter, so
     r < 1 means the pixels are less noisy than the camera model says (a gain too low, frames
     averaged): every fit error, at any brightness, is r times too large.
     """
-    use = np.isfinite(residual_nm) & np.isfinite(predicted_nm)
+    use = np.isfinite(residual_nm) & np.isfinite(predicted_nm) & (predicted_nm > 0)
     count = use.sum(axis=1)
-    dof = count / np.maximum(count - n_params, 1)
-    measured2 = np.sum(dof * np.sum(np.where(use, residual_nm, 0.0) ** 2, axis=1))
-    predicted2 = np.sum(np.where(use, predicted_nm, 0.0) ** 2)
     m = int(count.sum())
-    if m == 0 or predicted2 <= 0:
+    if m == 0:
         return 1.0
-    ratio = float(np.sqrt(measured2 / predicted2))
+    dof = count / np.maximum(count - n_params, 1)
+    normalised2 = np.where(use, residual_nm / np.where(use, predicted_nm, 1.0), 0.0) ** 2
+    ratio = float(np.sqrt(np.sum(dof * np.sum(normalised2, axis=1)) / m))
     return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0
