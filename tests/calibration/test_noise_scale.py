@@ -65,3 +65,15 @@ def test_measured_noise_scales_only_a_significant_deficit():
     assert measured_noise(2 * residual, predicted, n_params=5) == 1.0  # as predicted
     assert measured_noise(6 * residual, predicted, n_params=5) == 1.0  # more: never scaled up
     assert measured_noise(residual, np.full((2, 200), np.nan), n_params=5) == 1.0
+
+
+def test_measured_noise_is_not_ruled_by_flat_planes():
+    """Where a curve is flat its predicted error is huge, while the curve, fitted to those very
+    images, leaves them small residuals; they count once, like every other image. A ratio of RMS
+    values would give ~0.05 here."""
+    rng = np.random.default_rng(1)
+    predicted = rng.lognormal(np.log(5.0), 0.3, (40, 100))
+    residual = rng.normal(0.0, predicted)
+    predicted[:, :2] = 3000.0  # the flat ends of each curve
+    assert measured_noise(residual, predicted, n_params=5) >= 0.95
+    assert measured_noise(residual / 2, predicted, n_params=5) == pytest.approx(0.5, abs=0.03)
