@@ -603,6 +603,22 @@ def _fit_one(
     )  # fmt: skip
 
 
+@numba.njit(cache=True)
+def to_internal(natural, p, scale):
+    """Write the internal parameters (x, y, A, B, log wx, log wy, atanh rho) of ``natural`` into
+    ``p``, and into ``scale`` d natural / d internal (1, 1, 1, 1, wx, wy, 1 - rho^2), which takes
+    an information or covariance from one to the other."""
+    for m in range(4):
+        p[m] = natural[m]
+        scale[m] = 1.0
+    p[4] = math.log(natural[4])
+    p[5] = math.log(natural[5])
+    p[6] = math.atanh(natural[6])
+    scale[4] = natural[4]
+    scale[5] = natural[5]
+    scale[6] = 1.0 - natural[6] * natural[6]
+
+
 @numba.njit(parallel=True, cache=True)
 def fisher_batch(params, h, w, s2, n_chunks, out):
     """Fisher information (n, 7, 7) in the *natural* parameters of eq. 1 at each row of
@@ -616,17 +632,9 @@ def fisher_batch(params, h, w, s2, n_chunks, out):
         scratch = np.zeros((4, h * w))
         grad = np.empty(_NP)
         p = np.empty(_NP)
-        scale = np.ones(_NP)
+        scale = np.empty(_NP)
         for k in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            for m in range(4):
-                p[m] = params[k, m]
-            p[4] = math.log(params[k, 4])
-            p[5] = math.log(params[k, 5])
-            p[6] = math.atanh(params[k, 6])
-            # d(log wx) = d wx / wx, d(atanh rho) = d rho / (1 - rho^2)
-            scale[4] = params[k, 4]
-            scale[5] = params[k, 5]
-            scale[6] = 1.0 - params[k, 6] * params[k, 6]
+            to_internal(params[k], p, scale)
             info = out[k]
             _evaluate(roi, p, WLSQ, s2, 1.0, scratch[0], scratch[1], scratch[2], scratch[3],
                       info, grad)  # fmt: skip

@@ -24,7 +24,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from latentz.fit._kernels import MLE, _cholesky, _evaluate, _solve
+from latentz.fit._kernels import MLE, _cholesky, _evaluate, _solve, to_internal
 from latentz.fit._model import N_PARAMS, as_param_array
 
 __all__ = ["misspecified_covariance", "misspecified_errors", "sandwich_batch"]
@@ -40,8 +40,8 @@ def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
     h, w = roi.shape
     p, p_try, score, score_try, col = vecs[0], vecs[1], vecs[2], vecs[3], vecs[4]
     info, observed, lower, half = mats[0], mats[1], mats[2], mats[3]
-    p[0], p[1], p[2], p[3] = natural[0], natural[1], natural[2], natural[3]
-    p[4], p[5], p[6] = math.log(natural[4]), math.log(natural[5]), math.atanh(natural[6])
+    scale = vecs[5]
+    to_internal(natural, p, scale)
     # the model is its own reference (mu_ref = mu_out): only the score and information are used
     _evaluate(roi, p, MLE, s2, 1.0, scratch[0], scratch[1], scratch[0], scratch[1], info, score)
     for k in range(N_PARAMS):
@@ -71,10 +71,6 @@ def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
         for m in range(N_PARAMS):
             out[m, k] = col[m]
     # internal (log w, atanh ρ) → natural (w, ρ): multiply by d natural / d internal
-    scale = vecs[5]
-    for k in range(N_PARAMS):
-        scale[k] = 1.0
-    scale[4], scale[5], scale[6] = natural[4], natural[5], 1.0 - natural[6] ** 2
     for k in range(N_PARAMS):
         for m in range(N_PARAMS):
             out[k, m] *= scale[k] * scale[m]
