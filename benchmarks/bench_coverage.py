@@ -58,7 +58,7 @@ def validation_case() -> tuple:
     cal = lz.calibrate(data.stacks, data.z_nm, camera=data.camera, shape="rho_w", roi_size=ROI,
                        field_model="zernike")  # fmt: skip
     located = cal.apply(localize_test(data, roi_size=ROI))
-    errors = score(data, located, truth)
+    errors = score(data, located, truth, cal)
     errors = errors[errors["in_range"].to_numpy(bool)].reset_index(drop=True)
     located = errors[["emitter", "frame"]].merge(located, on=["emitter", "frame"], how="left")
     return cal, located, errors

@@ -154,7 +154,7 @@ def error_budget(cal, data, truth, spots: pd.DataFrame, size: str) -> pd.DataFra
         matched = spots[key].merge(found.drop(columns="particle", errors="ignore"), on=key,
                                    how="left")  # fmt: skip
         z[name] = cal.apply(matched)["z_nm"].to_numpy()
-    errors = score(data, cal.apply(spots), truth)
+    errors = score(data, cal.apply(spots), truth, cal)
     actual = errors["err_z_nm"].to_numpy()
     true_z = z["noisy"] - actual
     parts = pd.DataFrame({"photons": spots["photons"].to_numpy(), "actual": actual,
@@ -211,13 +211,13 @@ def every_model(data, truth, shapes: list[str], size: str) -> str:
             if kind == "auto" and shape == "rho_w":
                 budget = error_budget(cal, data, truth, spots, size)
             row = {"shape": shape, "field model": kind + (f" ({chosen})" if chosen else "")}
-            rows.append(row | summarise(score(data, located, truth)))
+            rows.append(row | summarise(score(data, located, truth, cal)))
         base = calibrate_traces(first.traces, camera=data.camera, shape=shape,
                                 field_model="nearest", roi_size=ROI,
                                 field_shape=first.options["field_shape"])  # fmt: skip
         located = idw_baseline(base, spots)
         rows.append({"shape": shape, "field model": "IDW 4-nearest baseline"}
-                    | summarise(score(data, located, truth)))  # fmt: skip
+                    | summarise(score(data, located, truth, base)))  # fmt: skip
     table = pd.DataFrame(rows)
     text = table.to_markdown(index=False, floatfmt=".3g")
     if "budget" in locals():
@@ -254,14 +254,14 @@ def defaults_study(data, size: str, cache: Path | None) -> tuple[str, dict[str, 
                             field_shape=cal.options["field_shape"])  # fmt: skip
     clean = noise_free_spots(data, size, roi_size=roi)
     models = {
-        f"defaults: {cal.field_model}": cal.apply,
-        "nearest": near.apply,
-        "IDW 4-nearest baseline": lambda frame: idw_baseline(near, frame),
+        f"defaults: {cal.field_model}": (cal, cal.apply),
+        "nearest": (near, near.apply),
+        "IDW 4-nearest baseline": (near, lambda frame: idw_baseline(near, frame)),
     }
     rows = []
-    for name, apply in models.items():
-        row = {"field model": name} | summarise(score(data, apply(spots), truth))
-        row["z noise-free"] = summarise(score(data, apply(clean), truth))["z"]
+    for name, (model, apply) in models.items():
+        row = {"field model": name} | summarise(score(data, apply(spots), truth, model))
+        row["z noise-free"] = summarise(score(data, apply(clean), truth, model))["z"]
         rows.append(row)
     table = pd.DataFrame(rows)
     table.insert(3, "z / nearest", table["z"] / table.loc[1, "z"])

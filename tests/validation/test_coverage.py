@@ -43,7 +43,7 @@ def validation_errors():
     truth = study_truth(data, roi_size=ROI)
     cal = lz.calibrate(data.stacks, data.z_nm, camera=data.camera, shape="rho_w", roi_size=ROI,
                        field_model="zernike")  # fmt: skip
-    errors = score(data, cal.apply(localize_test(data, roi_size=ROI)), truth)
+    errors = score(data, cal.apply(localize_test(data, roi_size=ROI)), truth, cal)
     return errors[errors["in_range"]]
 
 

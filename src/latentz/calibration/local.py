@@ -26,6 +26,7 @@ from latentz.calibration.traces import Traces
 
 __all__ = [
     "LocalOptions",
+    "best_focus",
     "ShapeModel",
     "LocalModels",
     "fit_local",
@@ -243,6 +244,30 @@ def _shape_model(
     return ShapeModel(values, forward, inverse, z_range, sigma, amplitude_ref)
 
 
+def best_focus(
+    z_nm: np.ndarray, amplitude: np.ndarray, options: LocalOptions = LocalOptions()
+) -> tuple[PolyModel, np.ndarray, np.ndarray]:
+    """Best focus z_f (nm, on ``z_nm``'s axis) of each trace: the peak of the order
+    ``amplitude_order`` polynomial A(z) fitted around the amplitude's maximum (paper Fig. 2d).
+
+    ``z_nm`` and ``amplitude`` are (n, n_z); NaN amplitudes are ignored. Returns the A(z) models,
+    z_f, and whether each peak lies inside its fitting window. The polynomial is fitted on the
+    contiguous planes where A ≥ ``focus_fraction`` × max, then again on a window of the same width
+    centred on that first peak: on a discrete plane grid the first window is asymmetric about the
+    peak, which biases it. This is the definition of best focus that every z of latentz refers to.
+    """
+    window = _focus_window(z_nm, amplitude, options.focus_fraction, options.amplitude_order + 3)
+    model = PolyModel.from_estimate(z_nm, amplitude, order=options.amplitude_order, mask=window)
+    z_f, interior = peak(model)
+    step = np.median(np.diff(z_nm, axis=1))
+    half = np.sum(window, axis=1, keepdims=True) * step / 2
+    centred = (np.abs(z_nm - z_f[:, None]) <= half) & np.isfinite(amplitude) & interior[:, None]
+    centred |= window & ~interior[:, None]
+    model = PolyModel.from_estimate(z_nm, amplitude, order=options.amplitude_order, mask=centred)
+    z_f, interior = peak(model)
+    return model, z_f, interior
+
+
 def fit_local(
     traces: Traces,
     shapes: tuple[str, ...],
@@ -266,16 +291,7 @@ def fit_local(
     n = len(traces)
     z = np.broadcast_to(traces.z_nm, (n, traces.z_nm.size)).copy()
     amp = traces["amplitude"]
-    window = _focus_window(z, amp, options.focus_fraction, options.amplitude_order + 3)
-    amplitude = PolyModel.from_estimate(z, amp, order=options.amplitude_order, mask=window)
-    z_f, interior = peak(amplitude)
-    # second pass on a window of the same width centred on the first estimate: on a discrete
-    # plane grid the first window is asymmetric about the peak, which biases it slightly
-    half = np.sum(window, axis=1, keepdims=True) * np.median(np.diff(traces.z_nm)) / 2
-    centred = (np.abs(z - z_f[:, None]) <= half) & np.isfinite(amp) & interior[:, None]
-    centred |= window & ~interior[:, None]
-    amplitude = PolyModel.from_estimate(z, amp, order=options.amplitude_order, mask=centred)
-    z_f, interior = peak(amplitude)
+    amplitude, z_f, interior = best_focus(z, amp, options)
     step = np.min(np.diff(traces.z_nm))
     in_focus = interior & (z_f > traces.z_nm[0] + step) & (z_f < traces.z_nm[-1] - step)
 

@@ -3,11 +3,12 @@
 Two conventions of latentz define what a "true" localization is (docs/conventions.md), and
 they are definitions rather than models, so they are computed here from noise-free images:
 
-- best focus is the peak of the fitted Gaussian amplitude A over defocus (:func:`focus_of`),
-  and z = 0 is the calibration particles' surface of best focus (piezo z) after a
-  least-squares plane is removed; so the true z of a test spot is its defocus from the focal
-  surface plus the focal surface's height there, minus the plane through the beads' piezo
-  best focus plus their substrate height (the substrate's tilt cancels);
+- best focus is the peak of the fitted Gaussian amplitude A over defocus (:func:`focus_of`,
+  the calibration's own definition), and z = 0 is the least-squares plane through the best
+  focus (piezo z) of the particles the calibration kept (:func:`origin_plane`); so the true z
+  of a test spot is its defocus from the focal surface plus the focal surface's height there,
+  minus that plane through the beads' piezo best focus plus their substrate height (the
+  substrate's tilt cancels);
 - the true lateral position is where the emitter appears at its own best focus (the paper's
   Fig. 2a), fitted in the ROI that ``localize`` uses.
 
@@ -25,21 +26,19 @@ from scipy.spatial import cKDTree
 
 from latentz.validation.datasets import ValidationData, _add, render_patches
 
-__all__ = ["best_focus", "focus_of", "localize_test", "score", "study_truth"]
+__all__ = ["best_focus", "focus_of", "localize_test", "origin_plane", "score", "study_truth"]
 
 
-def focus_of(z_nm: np.ndarray, amplitude: np.ndarray, *, fraction: float = 0.6) -> float:
-    """Best focus by the calibration's definition: the peak of an order-5 polynomial fitted to
-    the amplitude over the contiguous planes around its maximum where A >= ``fraction`` x max."""
-    top = int(np.nanargmax(amplitude))
-    low = amplitude < fraction * amplitude[top]
-    left = max([i + 1 for i in range(top) if low[i]], default=0)
-    right = min([i - 1 for i in range(top + 1, z_nm.size) if low[i]], default=z_nm.size - 1)
-    left, right = min(left, max(top - 4, 0)), max(right, min(top + 4, z_nm.size - 1))
-    z, a = z_nm[left : right + 1], amplitude[left : right + 1]
-    poly = np.polynomial.Polynomial.fit(z, a, min(5, z.size - 1))
-    fine = np.linspace(z[0], z[-1], 2001)
-    return float(fine[np.argmax(poly(fine))])
+def focus_of(z_nm: np.ndarray, amplitude: np.ndarray) -> float:
+    """Best focus (nm) of one amplitude trace by the calibration's definition
+    (:func:`latentz.calibration.local.best_focus`, the peak of an order-5 polynomial fitted
+    around the amplitude's maximum). The definition is shared, not re-implemented: at low NA
+    the amplitude's peak is broad, and two fitting windows that both follow the paper move it
+    by tens of nm, which would show up as z error that is only a difference of conventions."""
+    from latentz.calibration.local import best_focus
+
+    z = np.asarray(z_nm, dtype=float)[None, :]
+    return float(best_focus(z, np.asarray(amplitude, dtype=float)[None, :])[1][0])
 
 
 def _fit_at(images: np.ndarray, x_px: float, y_px: float, roi_size: int) -> pd.DataFrame:
@@ -118,17 +117,20 @@ def localize_test(
     return found[near].assign(emitter=emitters["emitter"].to_numpy()[idx[near]])
 
 
-def score(data: ValidationData, located: pd.DataFrame, truth: dict[str, Any]) -> pd.DataFrame:
-    """Errors of ``cal.apply`` output against the truth: one row per spot.
+def score(
+    data: ValidationData, located: pd.DataFrame, truth: dict[str, Any], calibration: Any
+) -> pd.DataFrame:
+    """Errors of ``calibration.apply`` output against the truth: one row per spot.
 
-    ``truth`` is :func:`study_truth`'s. Columns: ``emitter``, ``frame``, ``x``, ``y`` (px),
+    ``truth`` is :func:`study_truth`'s; z = 0 is :func:`origin_plane` of ``calibration``.
+    Columns: ``emitter``, ``frame``, ``x``, ``y`` (px),
     ``true_z_nm``, ``in_range``, ``err_x_nm``, ``err_y_nm``, ``err_z_nm`` and the reported
     ``x_err_nm``, ``y_err_nm``, ``z_err_nm``.
     """
     key = ["emitter", "frame"]
     spots = located.merge(data.test_truth, on=key, suffixes=("", "_true"))
     focus = truth["test_focus"].set_index("emitter").loc[spots["emitter"].to_numpy()]
-    c0, cx, cy = truth["plane"]
+    c0, cx, cy = origin_plane(data, truth, calibration)
     tx, ty = spots["x_true"].to_numpy(), spots["y_true"].to_numpy()
     surface = data.fields.focal_surface_nm(tx, ty)
     true_z = spots["defocus_nm"].to_numpy() + surface - (c0 + cx * tx + cy * ty)
@@ -152,11 +154,28 @@ def score(data: ValidationData, located: pd.DataFrame, truth: dict[str, Any]) ->
 
 
 def study_truth(data: ValidationData, *, roi_size: int) -> dict[str, Any]:
-    """Best focus of every calibration bead and test emitter (:func:`best_focus`), and the
-    calibration's z = 0: the plane through the beads' piezo z of best focus plus their
-    substrate height (``plane``: c0, cx, cy of ``z = c0 + cx x + cy y``, x, y in px)."""
-    cal = data.calibration_truth
+    """Best focus of every calibration bead and test emitter (:func:`best_focus`):
+    ``bead_focus_nm`` (one per ``calibration_truth`` row) and ``test_focus``."""
     beads, test_focus = best_focus(data, roi_size=roi_size)
-    x, y = cal["x"].to_numpy(), cal["y"].to_numpy()
-    level = beads + cal["substrate_nm"].to_numpy()  # best focus on the focal surface's axis
-    return {"bead_focus_nm": beads, "test_focus": test_focus, "plane": _plane(x, y, level)}
+    return {"bead_focus_nm": beads, "test_focus": test_focus}
+
+
+def origin_plane(
+    data: ValidationData, truth: dict[str, Any], calibration: Any, *, max_px: float = 1.0
+) -> np.ndarray:
+    """The calibration's z = 0 in truth: ``(c0, cx, cy)`` of the least-squares plane
+    ``z = c0 + cx x + cy y`` (x, y in px, nm) through the noise-free piezo best focus plus
+    substrate height of the beads that ``calibration`` kept (matched within ``max_px``).
+
+    Best focus moves by hundreds of nm across this microscope's field in no planar way, so a
+    plane through another set of beads (those at the frame's edge, say, which no calibration can
+    measure) is another z = 0: a convention, not an error of the calibration.
+    """
+    cal = data.calibration_truth
+    kept = calibration.particles.iloc[calibration.kept][["x", "y"]].to_numpy()
+    dist, idx = cKDTree(kept).query(cal[["x", "y"]].to_numpy())
+    use = dist <= max_px
+    if use.sum() < 3:
+        raise ValueError(f"Only {use.sum()} kept calibration particles match a bead of the truth.")
+    level = truth["bead_focus_nm"] + cal["substrate_nm"].to_numpy()  # the substrate's tilt cancels
+    return _plane(cal["x"].to_numpy()[use], cal["y"].to_numpy()[use], level[use])
