@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measured_noise
-from latentz.calibration.local import LocalModels, row_mean
+from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
@@ -371,6 +371,29 @@ class Calibration:
             self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
         return self._cache[key]
 
+    def _lack_of_fit(self, axis: str) -> np.ndarray:
+        """For "x" or "y": each particle's lack of fit (px, (n, n_z)), the part of its
+        residual σ about Δx'(z), Δy'(z) that its traces' own fit errors do not explain:
+        ``sqrt(max(σ_res² − σ_fit², 0))``, both as RMS over the local models' sliding window.
+
+        A Gaussian fitted to the real PSF wanders about any smooth curve of z by a few nm near
+        focus (the rings move through the ROI), and every emitter's fits wander like the
+        particles' do, by another pattern; a polynomial's own error does not hold it. Zero where
+        the traces carry no fit errors."""
+        key = f"lack_of_fit/{axis}"
+        if key not in self._cache:
+            residual = self._error_model(axis)[0]
+            if f"{axis}_err" not in self.traces.data:
+                self._cache[key] = np.zeros_like(residual)
+            else:
+                window = float(self.options.get("sigma_window_nm", LocalOptions().sigma_window_nm))
+                fit = sliding_rms(self.local.z_nm, self.traces[f"{axis}_err"], window_nm=window,
+                                  n_params=0)  # fmt: skip
+                fit = pd.DataFrame(fit.T).ffill().bfill().to_numpy().T
+                lack = np.sqrt(np.maximum(residual**2 - np.nan_to_num(fit) ** 2, 0.0))
+                self._cache[key] = lack
+        return self._cache[key]
+
     def _fit_part_z(self, params: np.ndarray, errors: np.ndarray, corr: np.ndarray | None,
                     p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
         """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
@@ -572,7 +595,8 @@ class Calibration:
             else:
                 own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
             field_d = self._field_sigma(axis, z, distance)  # nm
-            err = combine(own * px, model_d * px, slope * z_err * px, field_d)
+            lack = _interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
+            err = combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z

@@ -8,13 +8,15 @@ Three independent parts, added in quadrature:
    own x, y error, plus the slope of Δx'(z), Δy'(z) times the z error;
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
-   number of planes per parameter);
+   number of planes per parameter); laterally also its lack of fit, the part of the residual σ
+   that the traces' own fit errors do not explain (a fitted Gaussian wanders about any smooth
+   curve near focus, and so does every emitter's, by another pattern);
 3. **the field model's error**: how wrong the model of the field is between calibration
    particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
    the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
-   distance d to the nearest particle, evaluated at the spot's own distance; ``a²`` is the
-   particles' own scatter about the field (their size and height), which a held-out error holds
-   twice and a spot near one particle once (:func:`field_sigma`).
+   distance d to the nearest particle, evaluated at the spot's own distance (laterally no nearer
+   than the distances held out); in z, ``a²`` holds the particles' own heights, which a
+   held-out error holds twice and a spot near one particle once (:func:`field_sigma`).
 
 Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
 scatter about their z(s) curve less than their fit errors say, the camera's noise model
@@ -51,16 +53,25 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     ``a² + b² d²``: the held-out errors of ``table`` (:func:`~latentz.calibration.crossval.
     crossval`) are binned in z (``bin_nm`` wide, merged until each holds :data:`MIN_PER_BIN`
     planes), and in each bin ``a²`` and ``b²`` are the least-squares line of the squared errors
-    against the squared held-out distances (:func:`_floor_and_slope`; neither negative). A model
-    that passes through its particles (``nearest``, ``natural``, ``curves``) errs at a spot by
-    its particles' scatter, which a held-out error holds twice (the held-out particle's own, in
-    the "truth" it is compared with, and its neighbours'), so ``a²/2`` is added; for
-    ``natural`` and ``curves``, which average several neighbours, that is an upper bound. A
-    model that smooths over them (:data:`SMOOTHING`: a few Zernike terms over the whole field)
-    also misses the field at the particles themselves, and the whole ``a²`` is added. ``a²``
+    against the squared held-out distances (:func:`_floor_and_slope`; neither negative). In z,
+    a model that passes through its particles (``nearest``, ``natural``, ``curves``) errs at a
+    spot by its particles' own heights, which a held-out error holds twice (the held-out
+    particle's own, in the "truth" it is compared with, and its neighbours'), so ``a²/2`` is
+    added; for ``natural`` and ``curves``, which average several neighbours, that is an upper
+    bound. Laterally a particle has no such offset of its own (Δx', Δy' are measured from its
+    own focus, and a bead's size does not move its image sideways), so ``a²`` there is the
+    field's structure below the particles' spacing, which a spot meets in full: the whole
+    ``a²`` is added, as in z for a model that smooths over the particles (:data:`SMOOTHING`: a
+    few Zernike terms over the whole field), which misses the field at the particles too. ``a²``
     and ``b²`` are interpolated linearly at ``z_nm`` (held constant beyond the end bins) and
-    evaluated at ``distance_px``. Planes the model did not predict do not count. NaN z gives
-    NaN.
+    evaluated at ``distance_px``; laterally no nearer than the 10th percentile of the held-out
+    distances. Below those the line is an extrapolation, and laterally, where the floor is the
+    field's fine structure, a spot near a particle errs as much as one at the particles'
+    spacing (validation microscope: 5.9–7.6 nm RMS at 1–2.5 µm for emitters 7–15 px from a
+    particle, against 2.8–3.6 nm from the line). In z the floor holds the particles' heights
+    and the line is kept down to d = 0: on latentz's simulator, z errors near particles do
+    shrink (held at the spacing, 1σ covers 87 % there).
+    Planes the model did not predict do not count. NaN z gives NaN.
 
     ``model_nm`` (one per row of ``table``) is the 1σ of the held-out particle's own local model
     at that plane. A held-out error is the field model's error plus two local-model errors that
@@ -95,9 +106,11 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
         last = zz >= centres[-1]
         values[-1] = _floor_and_slope(err2[last], dist2[last])
     floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
-    if model not in SMOOTHING:
-        floor2 = floor2 / 2  # the spot's neighbours' scatter, not the held-out particle's too
+    if model not in SMOOTHING and axis == "z":
+        floor2 = floor2 / 2  # the spot's neighbours' heights, not the held-out particle's too
     d2 = np.asarray(distance_px, dtype=np.float64) ** 2
+    if axis != "z":  # no extrapolation below the distances held out (see above)
+        d2 = np.maximum(d2, np.quantile(dist2, 0.1))
     return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
 
 

@@ -24,6 +24,9 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz.calibration.local import LocalOptions
+from latentz.calibration.local import best_focus as amplitude_peak
+from latentz.calibration.polymodel import PolyModel
 from latentz.validation.datasets import ValidationData, _add, render_patches
 
 __all__ = ["best_focus", "focus_of", "localize_test", "origin_plane", "score", "study_truth"]
@@ -35,10 +38,8 @@ def focus_of(z_nm: np.ndarray, amplitude: np.ndarray) -> float:
     around the amplitude's maximum). The definition is shared, not re-implemented: at low NA
     the amplitude's peak is broad, and two fitting windows that both follow the paper move it
     by tens of nm, which would show up as z error that is only a difference of conventions."""
-    from latentz.calibration.local import best_focus
-
     z = np.asarray(z_nm, dtype=float)[None, :]
-    return float(best_focus(z, np.asarray(amplitude, dtype=float)[None, :])[1][0])
+    return float(amplitude_peak(z, np.asarray(amplitude, dtype=float)[None, :])[1][0])
 
 
 def _fit_at(images: np.ndarray, x_px: float, y_px: float, roi_size: int) -> pd.DataFrame:
@@ -54,19 +55,17 @@ def _fit_at(images: np.ndarray, x_px: float, y_px: float, roi_size: int) -> pd.D
     return fit.assign(x=fit["x"] + c0, y=fit["y"] + r0)
 
 
-def best_focus(
-    data: ValidationData,
-    *,
-    roi_size: int,
-    span_nm: float = 1500.0,
-    step_nm: float = 50.0,
-) -> tuple[np.ndarray, pd.DataFrame]:
+def best_focus(data: ValidationData, *, roi_size: int) -> tuple[np.ndarray, pd.DataFrame]:
     """Best focus of the calibration beads and of the test emitters (:func:`focus_of`).
 
     Returns the beads' piezo z of best focus (one per ``calibration_truth`` row, from the
     noise-free stacks) and, per test emitter, its defocus of best focus (``focus_nm``, from the
-    focal surface) and its apparent position there (``focus_x``, ``focus_y``, px), from
-    noise-free images every ``step_nm`` within ±``span_nm``.
+    focal surface) and its apparent position there (``focus_x``, ``focus_y``, px: the order-16
+    polynomial of its positions through focus at that defocus, as the calibration's Δx', Δy'
+    are measured from; a single image's fit there wiggles by several nm with the PSF's rings),
+    from noise-free images at the calibration's planes taken as defocus. The same planes matter: at
+    low NA the amplitude can stay above the fitting window's threshold over a shorter range,
+    and the peak of a polynomial fitted over another window is another best focus.
     """
     cal = data.calibration_truth
     beads = np.array(
@@ -75,7 +74,8 @@ def best_focus(
             for k, x, y in zip(cal["stack"], cal["x"], cal["y"], strict=True)
         ]
     )
-    grid = np.arange(-span_nm, span_nm + step_nm / 2, step_nm)
+    grid = data.z_nm - np.mean(data.z_nm)
+    order = LocalOptions().lateral_order
     rows = []
     emitters = data.test_truth.drop_duplicates("emitter")
     h, w = data.frames.shape[1:]
@@ -83,12 +83,15 @@ def best_focus(
         images = np.full((grid.size, h, w), data.background)
         _add(images, 1e5 * render_patches(data.microscope, data.fields, x, y, grid, roi_size),
              x, y)  # fmt: skip
-        focus = focus_of(grid, _fit_at(images, x, y, roi_size)["amplitude"].to_numpy())
-        image = np.full((1, h, w), data.background)
-        _add(image, 1e5 * render_patches(data.microscope, data.fields, x, y,
-                                         np.array([focus]), roi_size), x, y)  # fmt: skip
-        at = _fit_at(image, x, y, roi_size).iloc[0]
-        rows.append((e, focus, at["x"], at["y"]))
+        fits = _fit_at(images, x, y, roi_size)
+        focus = focus_of(grid, fits["amplitude"].to_numpy())
+        at = [
+            PolyModel.from_estimate(grid[None, :], fits[axis].to_numpy()[None, :], order=order)(
+                np.array([[focus]])
+            )[0, 0]
+            for axis in ("x", "y")
+        ]
+        rows.append((e, focus, *at))
     return beads, pd.DataFrame(rows, columns=["emitter", "focus_nm", "focus_x", "focus_y"])
 
 
