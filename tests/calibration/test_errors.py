@@ -1,7 +1,8 @@
 """The field part of the reported errors (:func:`latentz.calibration.errors.field_sigma`) on
 held-out tables of known make-up: a field error that grows in proportion to the distance, a
 floor for a smoothing model, half the floor (the particles' own scatter, held twice in a held-out
-error) for an interpolating one, and the local models' part that must not be counted twice."""
+error) for an interpolating one in z and the whole floor laterally, and the local models' part
+that must not be counted twice."""
 
 import numpy as np
 import pandas as pd
@@ -55,3 +56,19 @@ def test_the_local_models_part_is_not_counted_in_the_field_part():
     assert without[0] == pytest.approx(20.0, rel=TOL + 0.05)
     # counted in, it would be a floor of 2·20² nm², half of it added: sqrt(2) times as large
     assert with_local[0] > 1.3 * without[0]
+
+
+def test_lateral_errors_keep_the_whole_floor_and_are_not_extrapolated_below_the_held_out():
+    """Laterally a particle has no offset of its own: a spot meets the whole floor, and below
+    the nearest held-out distances (here 5 px, the 10th percentile ~8.5 px) the line is held."""
+    table = _table("nearest", floor_nm=10.0, per_px_nm=1.0, local_nm=0.0, seed=4)
+    table = table.rename(columns={"err_z_nm": "err_x_nm"})
+    d10 = np.quantile(table["distance_px"], 0.1)
+    d = np.array([0.0, d10, 30.0])
+    sigma = field_sigma(table, "nearest", "x", np.zeros(3), d, bin_nm=2000.0)
+    expected = np.sqrt(10.0**2 + (1.0 * np.maximum(d, d10)) ** 2)
+    np.testing.assert_allclose(sigma, expected, rtol=TOL + 0.1)
+    assert sigma[0] == sigma[1]
+    z_sigma = field_sigma(table.rename(columns={"err_x_nm": "err_z_nm"}), "nearest", "z",
+                          np.zeros(1), np.zeros(1), bin_nm=2000.0)  # fmt: skip
+    assert z_sigma[0] < 0.8 * sigma[0]  # in z, half the floor and the line down to d = 0
