@@ -125,7 +125,9 @@ def test_ctrl_c_says_how_to_resume(tmp_path, small_microscope, small_calibration
     cal = tmp_path / "cal.h5"
     small_calibration.save(cal)
     movie = tmp_path / "long.tif"
-    tifffile.imwrite(movie, np.concatenate([small_microscope.gear.frames] * 4))
+    # long enough that the run cannot finish between the first chunk and the signal: after
+    # the first chunk (compilation) the rest goes at hundreds of frames/s
+    tifffile.imwrite(movie, np.concatenate([small_microscope.gear.frames] * 25))
     out = tmp_path / "locs.parquet"
     args = [sys.executable, "-m", "latentz.cli", "localize", str(movie), "--calibration"]
     args += [str(cal), "--chunk-frames", "2", "--quiet", "--out", str(out)]
