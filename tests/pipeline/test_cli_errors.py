@@ -131,7 +131,13 @@ def test_ctrl_c_says_how_to_resume(tmp_path, small_microscope, small_calibration
     out = tmp_path / "locs.parquet"
     args = [sys.executable, "-m", "latentz.cli", "localize", str(movie), "--calibration"]
     args += [str(cal), "--chunk-frames", "2", "--quiet", "--out", str(out)]
-    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True)
+
+    # a terminal delivers Ctrl-C; a test run started in the background (`cmd &`) inherits SIGINT
+    # ignored, and Python then never raises KeyboardInterrupt: restore the default for the CLI
+    def default_sigint() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint)
     chunks = tmp_path / "locs.parquet.chunks"
     deadline = time.time() + 120
     while time.time() < deadline and not list(chunks.glob("chunk-*.parquet")):
