@@ -171,7 +171,7 @@ class Calibration:
             curves = {}
             for name in ("wx", "wy", "rho"):
                 raw = self.traces[name]
-                filled = pd.DataFrame(raw.T).ffill().bfill().to_numpy().T
+                filled = _bridge_gaps(raw)
                 smooth = median_filter(filled, size=(1, 5), mode="nearest")
                 curves[name] = smooth
                 with np.errstate(invalid="ignore"):
@@ -367,7 +367,7 @@ class Calibration:
             else:
                 sigma = self.local.sigma_dx if axis == "x" else self.local.sigma_dy
                 model = self.local.dx if axis == "x" else self.local.dy
-            filled = pd.DataFrame(sigma.T).ffill().bfill().to_numpy().T
+            filled = _bridge_gaps(sigma)
             self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
         return self._cache[key]
 
@@ -389,7 +389,7 @@ class Calibration:
                 window = float(self.options.get("sigma_window_nm", LocalOptions().sigma_window_nm))
                 fit = sliding_rms(self.local.z_nm, self.traces[f"{axis}_err"], window_nm=window,
                                   n_params=0)  # fmt: skip
-                fit = pd.DataFrame(fit.T).ffill().bfill().to_numpy().T
+                fit = _bridge_gaps(fit)
                 lack = np.sqrt(np.maximum(residual**2 - np.nan_to_num(fit) ** 2, 0.0))
                 self._cache[key] = lack
         return self._cache[key]
@@ -641,6 +641,12 @@ def _row_weights(
     j = np.clip(np.searchsorted(base, np.where(np.isfinite(u), u, -np.inf)), 1, base.size - 1)
     w = np.clip((u - base[j - 1]) / (base[j] - base[j - 1]), 0.0, 1.0)
     return rows, j, w
+
+
+def _bridge_gaps(values: np.ndarray) -> np.ndarray:
+    """(n, n_z) ``values`` with each row's NaN planes given the previous finite plane's value
+    (leading ones the next's); rows with no finite value stay NaN."""
+    return pd.DataFrame(values.T).ffill().bfill().to_numpy().T
 
 
 def _interp_rows(

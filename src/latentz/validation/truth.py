@@ -10,7 +10,8 @@ they are definitions rather than models, so they are computed here from noise-fr
   minus that plane through the beads' piezo best focus plus their substrate height (the
   substrate's tilt cancels);
 - the true lateral position is where the emitter appears at its own best focus (the paper's
-  Fig. 2a), fitted in the ROI that ``localize`` uses.
+  Fig. 2a): the order-16 polynomial of its positions through focus, fitted in the ROI that
+  ``localize`` uses, read at that focus.
 
 Both fit noise-free images with :func:`latentz.fit.fit_rois`, as the calibration does; the images
 come from this package's optics.
