@@ -39,12 +39,14 @@ def make_traces(
     shift_nm_per_um=0.05,
     defect=None,
     noise_seed=None,
+    c_nm=None,
 ):
     """Traces of ``n`` particles; returns (Traces, truth dict).
 
     ``noise_seed`` draws the noise from its own generator (same particles, new noise).
     ``defect`` (n,) of "none", "dimer" (two touching particles 2 s0 apart at a random angle:
     twice the photons, the image stretched along the pair) or "large" (1.5 s0, 4x the photons).
+    ``c_nm`` (n,): each particle's astigmatic half-separation ``c`` (default 500 nm for all).
     """
     rng = np.random.default_rng(seed)
     z = np.arange(-3000.0, 3000.1, 50.0) if z_nm is None else np.asarray(z_nm, float)
@@ -53,7 +55,8 @@ def make_traces(
     zz = z[None, :] - zf[:, None]
     kind = np.full(n, "none") if defect is None else np.asarray(defect)
     s0 = np.where(kind == "large", 2.25, 1.5)[:, None]
-    wx, wy, rho, s1, s2 = widths(z[None, :], zf[:, None], theta=theta, s0=s0)
+    c = np.full(n, 500.0) if c_nm is None else np.asarray(c_nm, float)
+    wx, wy, rho, s1, s2 = widths(z[None, :], zf[:, None], theta=theta, s0=s0, c=c[:, None])
     n_ph = photons * np.select([kind == "dimer", kind == "large"], [2.0, 4.0], 1.0)[:, None]
     amp = n_ph / (2 * np.pi * s1 * s2)
     phi = rng.uniform(0, np.pi, n)[:, None]

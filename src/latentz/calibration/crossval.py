@@ -2,10 +2,12 @@
 
 A field model is judged where it is used: between calibration particles. Each kept particle is
 held out in turn, the widefield model is built from the others, and the held-out particle's own
-calibration is predicted at its place: for every plane of its monotonic range, z from its shape
-value s(z) (its own smoothed forward model), then Δx', Δy' at the predicted z. The errors
-(predicted minus its own local models, nm) are the field model's error alone; the fit's
-precision and the local model's σ are accounted separately (:mod:`latentz.calibration.errors`).
+calibration is predicted at its place: for every plane of its monotonic range, z from the shape
+value s measured there, smoothed by a local cubic over a few planes (not its order-16 forward
+model, which near focus misses noise-free curves by several times the noise of bright beads),
+then Δx', Δy' at the predicted z. The errors (predicted minus the plane's z and its own lateral
+models, nm) are the field model's error; a spot's fit precision and the local model's σ are
+accounted separately (:mod:`latentz.calibration.errors`).
 
 To keep the cost at a few model builds, particles are held out in ``n_groups`` groups spread over
 the field (every ``n_groups``-th particle in a random order): each build then uses
@@ -33,6 +35,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from scipy.signal import savgol_filter
 from scipy.spatial import cKDTree
 
 __all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS", "crossval",
@@ -41,6 +44,10 @@ __all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS", "crossv
 
 CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
                     "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
+
+#: Planes of the local cubic (Savitzky-Golay) that takes the noise of bright beads off the
+#: held-out shape values, without the order-16 forward model's misfit near focus.
+_SMOOTH_PLANES = 7
 
 #: Fewer kept particles than this leave no field to model: "auto" takes ``nearest``.
 MIN_FIELD_PARTICLES = 12
@@ -76,12 +83,21 @@ def predict(cal: Any, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tupl
 
 
 def _held_out_planes(cal: Any, particles: np.ndarray) -> pd.DataFrame:
-    """Every plane of each particle's monotonic range: its z, s(z) and Δx'(z), Δy'(z)."""
+    """Every plane of each particle's monotonic range whose measured shape value its own inverse
+    model covers (noise takes the end planes' values past it): its z, that s (a local cubic over
+    :data:`_SMOOTH_PLANES` planes, where the particle has a value at every plane) and
+    Δx'(z), Δy'(z)."""
     model = cal.local.shapes[cal.shape]
     z = cal.local.z_nm[particles]
     lo, hi = model.z_range[particles, 0:1], model.z_range[particles, 1:2]
     inside = (z >= lo) & (z <= hi)
-    rows, cols = np.nonzero(inside)
+    vals = np.array(model.values[particles])
+    full = np.isfinite(vals).all(axis=1)
+    if full.any() and vals.shape[1] >= _SMOOTH_PLANES:
+        vals[full] = savgol_filter(vals[full], _SMOOTH_PLANES, 3, axis=1)
+    rows, cols = np.nonzero(inside & np.isfinite(vals))
+    covered = model.inverse[particles[rows]].contains(vals[rows, cols])
+    rows, cols = rows[covered], cols[covered]
     p = particles[rows]
     zz = z[rows, cols]
     return pd.DataFrame(
@@ -90,7 +106,7 @@ def _held_out_planes(cal: Any, particles: np.ndarray) -> pd.DataFrame:
             "x": cal.positions[p, 0],
             "y": cal.positions[p, 1],
             "z_nm": zz,
-            "s": model.forward[p](zz),
+            "s": vals[rows, cols],
             "dx": cal.local.dx[p](zz),
             "dy": cal.local.dy[p](zz),
         }

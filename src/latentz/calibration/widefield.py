@@ -12,13 +12,18 @@ Range: a spot is in range only if, among its ``k_near`` nearest calibration part
 ``min_fraction`` cover its s (both tabulated columns around it); otherwise z is NaN and
 ``in_range`` False. Nothing is extrapolated.
 
-:class:`CurveModel` (``field_model="curves"``) tabulates nothing: it carries each particle's whole
-calibration across the field. A spot's natural neighbours among the particles (Sibson
-coordinates, at the nearest point of their convex hull for a spot outside it) each invert their
-own z(s) at the spot's s; z is the weighted mean, and Δx', Δy' the weighted mean of the
-neighbours' own Δx'(z), Δy'(z) at that z. The weights depend only on the spot's position, so a
-particle's curve is used whole, over its own range, and the interpolant is linear-precision
-between particles (it reproduces a field that varies linearly) and defined everywhere.
+:class:`CurveModel` (``field_model="curves"``) carries each particle's whole measured shape curve
+across the field instead. The curves, sampled on one fine z grid, are interpolated over the
+field by a thin-plate spline, column by column: at a spot's position that gives its own curve
+s(z), which is inverted where it crosses the spot's s, inside the mean of its natural
+neighbours' monotonic ranges. Δx', Δy' are the Sibson-weighted mean of the natural neighbours'
+own Δx'(z), Δy'(z) at that z. Interpolating s at fixed z, rather than averaging the
+neighbours' z at fixed s, keeps the interpolant smooth where a curve turns fast (near focus),
+and the thin-plate spline follows aberrations that vary on the scale of the particle spacing,
+where a weighted mean of neighbours flattens them. On the independent validation microscope
+(docs/accuracy.md) this cut the z error of noise-free spots from 24 to 16 nm, and noise-free
+particle curves carried this way miss a test emitter's own curve by less than half of what the
+nearest particle's curve does.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from latentz._shared.validate import check_array, check_int, check_positive
@@ -333,6 +339,57 @@ def _weighted_mean(
         return summed / total, total
 
 
+#: Grid columns of the shape surface per calibration plane spacing, and at most this many.
+_GRID_PER_PLANE, _MAX_GRID = 4, 1200
+#: Spots per block of the shape surface's evaluation ((block, grid) arrays).
+_CHUNK = 4096
+
+
+def sampled_curves(z_nm: np.ndarray, values: np.ndarray, grid_nm: np.ndarray) -> np.ndarray:
+    """(n, m) each row of ``values`` (n, n_z) at heights ``z_nm`` (n, n_z) on ``grid_nm`` (m,):
+    linear between its finite planes and held at its first and last beyond them (NaN rows for
+    fewer than two).
+
+    The measured values, not the order-16 forward models: near focus, where s turns fastest,
+    those miss noise-free curves by several times the noise of 2e5-photon beads. The values
+    held beyond a particle's planes (its span differs from the others' by the substrate's tilt)
+    are never read there: z is sought only inside the particles' monotonic ranges."""
+    out = np.full((values.shape[0], grid_nm.size), np.nan)
+    for i, (z, v) in enumerate(zip(z_nm, values, strict=True)):
+        ok = np.isfinite(z) & np.isfinite(v)
+        if ok.sum() >= 2:
+            order = np.argsort(z[ok])
+            out[i] = np.interp(grid_nm, z[ok][order], v[ok][order])
+    return out
+
+
+def _spline(points: np.ndarray, values: np.ndarray) -> RBFInterpolator:
+    """Thin-plate spline through ``values`` (n, m) at ``points`` (n, 2) px; with fewer than
+    three points, or all on one line, the linear radial basis with a constant."""
+    try:
+        return RBFInterpolator(points, values, kernel="thin_plate_spline")
+    except (ValueError, np.linalg.LinAlgError):
+        return RBFInterpolator(points, values, kernel="linear", degree=0)
+
+
+def crossing(
+    grid_nm: np.ndarray, curves: np.ndarray, s: np.ndarray, lo_nm: np.ndarray, hi_nm: np.ndarray
+) -> np.ndarray:
+    """Where each row of ``curves`` (k, m), linear between the columns at ``grid_nm``, equals
+    ``s`` (k,) inside [``lo_nm``, ``hi_nm``] (nm; the mean where it does so more than once, NaN
+    where never)."""
+    d = curves - s[:, None]
+    with np.errstate(invalid="ignore"):
+        above = d >= 0
+    row, col = np.nonzero((above[:, 1:] != above[:, :-1]) & np.isfinite(d[:, 1:] + d[:, :-1]))
+    d0, d1 = d[row, col], d[row, col + 1]
+    z = grid_nm[col] + d0 / (d0 - d1) * (grid_nm[col + 1] - grid_nm[col])
+    keep = (z >= lo_nm[row]) & (z <= hi_nm[row])
+    n = np.bincount(row[keep], minlength=s.size)
+    with np.errstate(invalid="ignore"):
+        return np.bincount(row[keep], z[keep], minlength=s.size) / np.where(n > 0, n, np.nan)
+
+
 @dataclass(frozen=True, eq=False)
 class CurveModel:
     """Widefield model that interpolates the particles' own curves (module notes).
@@ -341,49 +398,52 @@ class CurveModel:
     ----------
     x_px, y_px : ndarray (n,)
         Kept particle positions, pixels.
-    inverse : PolyModel
-        Each particle's z(s) (tilt-corrected nm), over its monotonic shape range.
+    z_grid_nm : ndarray (m,)
+        Heights (tilt-corrected nm) at which the shape surface is interpolated, increasing.
+    surface : RBFInterpolator
+        Thin-plate spline over the field (px) of the particles' measured shape curves on
+        ``z_grid_nm`` (:func:`sampled_curves`).
+    z_range_nm : ndarray (n, 2)
+        Each particle's monotonic z range around focus: a spot's z is sought inside the
+        weighted mean of its natural neighbours' ranges.
     dx, dy : PolyModel
         Each particle's Δx'(z), Δy'(z), pixels.
     z_span_nm : ndarray (n, 2)
         The z span each particle was imaged over: its curves are used only inside it.
     field_shape : (int, int)
-    min_fraction : float
-        A spot is in range where the neighbours that cover its s carry at least this fraction of
-        its weight.
     """
 
     x_px: np.ndarray
     y_px: np.ndarray
-    inverse: PolyModel
+    z_grid_nm: np.ndarray
+    surface: RBFInterpolator
+    z_range_nm: np.ndarray
     dx: PolyModel
     dy: PolyModel
     z_span_nm: np.ndarray
     field_shape: tuple[int, int]
-    min_fraction: float = 0.5
 
     @classmethod
-    def from_calibration(
-        cls, cal: Any, *, field_shape: tuple[int, int], min_fraction: float = 0.5
-    ) -> CurveModel:
+    def from_calibration(cls, cal: Any, *, field_shape: tuple[int, int]) -> CurveModel:
         """The kept particles of a :class:`~latentz.calibration.calibration.Calibration`."""
         kept = cal.kept
         if kept.size == 0:
             raise ValueError("Every calibration particle was culled: nothing to apply.")
-        min_fraction = check_positive("min_fraction", min_fraction)
-        if min_fraction > 1:
-            raise ValueError(f"Expected `min_fraction` in (0, 1], got {min_fraction!r}.")
         x, y = cal.positions[kept].T
-        return cls(
-            x,
-            y,
-            cal.local.shapes[cal.shape].inverse[kept],
-            cal.local.dx[kept],
-            cal.local.dy[kept],
-            cal.z_span_nm[kept],
-            tuple(field_shape),
-            min_fraction,
-        )
+        shape = cal.local.shapes[cal.shape]
+        span = cal.z_span_nm[kept]
+        z = cal.local.z_nm[kept]
+        lo, hi = np.nanmin(span[:, 0]), np.nanmax(span[:, 1])
+        plane = np.nanmedian(np.abs(np.diff(z, axis=1)))
+        step = max(plane / _GRID_PER_PLANE, (hi - lo) / _MAX_GRID)
+        grid = np.arange(lo, hi + step / 2, step)
+        curves = sampled_curves(z, shape.values[kept], grid)
+        has = np.isfinite(curves).all(axis=1)
+        if not has.any():
+            raise ValueError("No kept calibration particle has two planes with a shape value.")
+        surface = _spline(np.column_stack([x, y])[has], curves[has])
+        return cls(x, y, grid, surface, shape.z_range[kept],
+                   cal.local.dx[kept], cal.local.dy[kept], span, tuple(field_shape))  # fmt: skip
 
     def _inside_span(self, particle: np.ndarray, z: np.ndarray) -> np.ndarray:
         lo, hi = self.z_span_nm[particle].T
@@ -400,22 +460,22 @@ class CurveModel:
         """
         x, y, s, inside = _spot_arrays(x_px, y_px, s, iterations, self.field_shape)
         rows = np.flatnonzero(inside & np.isfinite(s))
-        if rows.size == 0:
-            return (*(np.full(x.size, np.nan) for _ in range(3)), np.zeros(x.size, dtype=bool))
-        xr, yr, sr = x[rows], y[rows], s[rows]
-        xq, yq = xr, yr
-        for it in range(iterations + 1):
-            q, p, wt = self._weights(xq, yq)
-            zr, covered = self._z(q, p, wt, sr)
-            if it:  # the lateral models at the apparent position, as the paper's
-                q, p, wt = self._weights(xr, yr)
-            dxr, dyr = (self._delta(model, q, p, wt, zr) for model in (self.dx, self.dy))
-            xq, yq = xr - dxr, yr - dyr
         out = [np.full(x.size, np.nan) for _ in range(3)]
         in_range = np.zeros(x.size, dtype=bool)
-        in_range[rows] = (covered >= self.min_fraction) & np.isfinite(dxr) & np.isfinite(dyr)
-        for full, part in zip(out, (zr, dxr, dyr), strict=True):
-            full[rows] = np.where(in_range[rows], part, np.nan)
+        for block in np.array_split(rows, max(1, -(-rows.size // _CHUNK))):
+            if block.size == 0:
+                continue
+            xr, yr, sr = x[block], y[block], s[block]
+            q, p, wt = self._weights(xr, yr)  # the lateral models at the apparent position
+            xq, yq = xr, yr
+            for it in range(iterations + 1):
+                zr = self._z(xq, yq, sr, (q, p, wt) if it == 0 else self._weights(xq, yq))
+                dxr, dyr = (self._delta(model, q, p, wt, zr) for model in (self.dx, self.dy))
+                xq, yq = xr - dxr, yr - dyr
+            ok = np.isfinite(zr) & np.isfinite(dxr) & np.isfinite(dyr)
+            in_range[block] = ok
+            for full, part in zip(out, (zr, dxr, dyr), strict=True):
+                full[block] = np.where(ok, part, np.nan)
         return out[0], out[1], out[2], in_range
 
     def _weights(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -424,13 +484,18 @@ class CurveModel:
         q, p, wt, _ = field_weights(points, np.column_stack([x, y]))
         return q, p, wt
 
-    def _z(self, q, p, wt, s) -> tuple[np.ndarray, np.ndarray]:
-        """z of each spot from its neighbours' own z(s), and the weight of those covering s."""
-        inverse = self.inverse[p]
-        use = inverse.contains(s[q]) & inverse.valid
-        z_p = inverse(np.where(use, s[q], inverse.domain[:, 0]))
-        use &= self._inside_span(p, z_p)
-        return _weighted_mean(q, wt, z_p, use, s.size)
+    def shape_curves(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(k, m) shape curves at (x, y) px on :attr:`z_grid_nm`."""
+        return self.surface(np.column_stack([x, y]))
+
+    def _z(self, x: np.ndarray, y: np.ndarray, s: np.ndarray, weights: tuple) -> np.ndarray:
+        """z of each spot: where the shape curve at its position crosses its s, inside the
+        mean of its natural neighbours' monotonic ranges (``weights``, the triplets of
+        :meth:`_weights` at (x, y); NaN where it does not)."""
+        q, p, wt = weights
+        lo, hi = (_weighted_mean(q, wt, self.z_range_nm[p, i], np.isfinite(self.z_range_nm[p, i]),
+                                 x.size)[0] for i in (0, 1))  # fmt: skip
+        return crossing(self.z_grid_nm, self.shape_curves(x, y), s, lo, hi)
 
     def _delta(self, model: PolyModel, q, p, wt, z) -> np.ndarray:
         """Δx' or Δy' of each spot: its neighbours' own curves at its z (NaN z gives NaN)."""
