@@ -27,7 +27,7 @@ SHAPE_NAMES = {
 _FIELD_NAMES = {
     "zernike": "Zernike polynomials over the field",
     "natural": "natural-neighbour interpolation between particles",
-    "curves": "the natural neighbours' own calibration curves, interpolated across the field",
+    "curves": "the particles' own shape curves, interpolated across the field (thin-plate spline)",
     "nearest": "the nearest calibration particle's own models",
 }
 

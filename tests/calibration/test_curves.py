@@ -17,7 +17,7 @@ from scipy.spatial import Delaunay
 
 from latentz.calibration import calibrate_traces
 from latentz.calibration.fieldmodels import field_weights
-from latentz.calibration.widefield import crossing
+from latentz.calibration.widefield import _loo_smoothing, crossing
 
 THETA = np.pi / 4
 GRADIENT = np.array([0.3, -0.2])  # nm of best focus per px
@@ -166,3 +166,40 @@ def test_crossing_inverts_each_row_inside_its_bounds():
     turn = np.abs(grid)[None, :] * 1e-3
     np.testing.assert_allclose(crossing(grid, turn, np.array([0.3]), np.array([0.0]),
                                         np.array([1000.0])), [300.0])  # fmt: skip
+
+
+def test_surface_smoothing_is_chosen_by_leave_one_out():
+    """A smooth field under per-particle scatter is smoothed; a field that changes between
+    particles is interpolated exactly. The choice is checked against leave-one-out refits with
+    scipy's own spline."""
+    from scipy.interpolate import RBFInterpolator
+
+    rng = np.random.default_rng(1)
+    points = rng.uniform(0, 500, (60, 2))
+    x, y = points.T
+    smooth = np.column_stack([np.sin(x / 200), np.cos(y / 300), x * 1e-3])
+    scattered = smooth + 0.05 * rng.standard_normal(smooth.shape)
+    wavy = np.column_stack([np.sin(x / 40) * np.cos(y / 40), np.sin(y / 35)])
+    assert _loo_smoothing(points, wavy) == 0.0
+    chosen = _loo_smoothing(points, scattered)
+    assert chosen > 0.0
+
+    def refit_error(smoothing: float) -> float:
+        errors = []
+        for i in range(len(points)):
+            rest = np.arange(len(points)) != i
+            spline = RBFInterpolator(points[rest], scattered[rest], kernel="thin_plate_spline",
+                                     smoothing=smoothing)  # fmt: skip
+            errors.append(spline(points[i : i + 1])[0] - scattered[i])
+        return float(np.mean(np.square(errors)))
+
+    assert refit_error(chosen) < refit_error(0.0)
+    # and the smoothed surface is nearer the field than the exact interpolant
+    test = rng.uniform(50, 450, (400, 2))
+    truth = np.column_stack([np.sin(test[:, 0] / 200), np.cos(test[:, 1] / 300), test[:, 0] * 1e-3])
+    err = {
+        s: np.sqrt(np.mean((RBFInterpolator(points, scattered, kernel="thin_plate_spline",
+                                            smoothing=s)(test) - truth) ** 2))
+        for s in (0.0, chosen)
+    }  # fmt: skip
+    assert err[chosen] < 0.8 * err[0.0]

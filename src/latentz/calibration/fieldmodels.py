@@ -18,8 +18,9 @@ lateral position. The paper compares three models, all behind one interface here
     Natural-neighbour interpolation valid over the whole field: inside the convex hull of the
     valid particles it is ``"natural"``; a point outside takes the Sibson coordinates of the
     nearest point of the hull (constant along the hull's normal). Error estimate: leave-one-out.
-    The widefield model of this kind (:class:`~latentz.calibration.widefield.CurveModel`) applies
-    these weights to each particle's whole calibration curve rather than to tabulated values.
+    The widefield model of this kind (:class:`~latentz.calibration.widefield.CurveModel`) uses
+    these weights for Δx', Δy' and the z range; its z comes from a thin-plate spline of the
+    particles' whole shape curves.
 ``"nearest"``
     The value of the nearest valid particle (``scipy.spatial.cKDTree``). Leave-one-out errors.
 

@@ -14,16 +14,15 @@ Range: a spot is in range only if, among its ``k_near`` nearest calibration part
 
 :class:`CurveModel` (``field_model="curves"``) carries each particle's whole measured shape curve
 across the field instead. The curves, sampled on one fine z grid, are interpolated over the
-field by a thin-plate spline, column by column: at a spot's position that gives its own curve
-s(z), which is inverted where it crosses the spot's s, inside the mean of its natural
-neighbours' monotonic ranges. Δx', Δy' are the Sibson-weighted mean of the natural neighbours'
-own Δx'(z), Δy'(z) at that z. Interpolating s at fixed z, rather than averaging the
-neighbours' z at fixed s, keeps the interpolant smooth where a curve turns fast (near focus),
-and the thin-plate spline follows aberrations that vary on the scale of the particle spacing,
-where a weighted mean of neighbours flattens them. On the independent validation microscope
-(docs/accuracy.md) this cut the z error of noise-free spots from 24 to 16 nm, and noise-free
-particle curves carried this way miss a test emitter's own curve by less than half of what the
-nearest particle's curve does.
+field by a thin-plate spline, column by column, with the smoothing that predicts each particle
+best from the others (leave-one-out): exact where aberrations change between neighbouring
+particles, smooth where the field is smoother than the particles' own scatter (their size and
+height). At a spot's position that gives its own curve s(z), which is inverted where it crosses
+the spot's s, inside the mean of its natural neighbours' monotonic ranges. Δx', Δy' are the
+Sibson-weighted mean of the natural neighbours' own Δx'(z), Δy'(z) at that z. Interpolating s at
+fixed z, rather than averaging the neighbours' z at fixed s, keeps the interpolant smooth where
+a curve turns fast (near focus), and the spline follows aberrations that vary on the scale of
+the particle spacing, where a weighted mean of neighbours flattens them (docs/accuracy.md).
 """
 
 from __future__ import annotations
@@ -339,8 +338,10 @@ def _weighted_mean(
         return summed / total, total
 
 
-#: Grid columns of the shape surface per calibration plane spacing, and at most this many.
-_GRID_PER_PLANE, _MAX_GRID = 4, 1200
+#: Grid columns of the shape surface per calibration plane spacing (the measured values are
+#: linear between planes; a finer grid changed z by < 1 nm on the validation microscope and
+#: cost 4x the time), and at most this many columns.
+_GRID_PER_PLANE, _MAX_GRID = 1, 1200
 #: Spots per block of the shape surface's evaluation ((block, grid) arrays).
 _CHUNK = 4096
 
@@ -363,11 +364,45 @@ def sampled_curves(z_nm: np.ndarray, values: np.ndarray, grid_nm: np.ndarray) ->
     return out
 
 
-def _spline(points: np.ndarray, values: np.ndarray) -> RBFInterpolator:
-    """Thin-plate spline through ``values`` (n, m) at ``points`` (n, 2) px; with fewer than
-    three points, or all on one line, the linear radial basis with a constant."""
+#: Candidate smoothings of the thin-plate spline (added to the kernel's diagonal, whose entries
+#: r² log r are ~10⁵-10⁷ between particles tens to hundreds of px apart).
+_SMOOTHING = (0.0, *(10.0**k for k in range(9)))
+
+
+def _loo_smoothing(points: np.ndarray, values: np.ndarray) -> float:
+    """The smoothing of :data:`_SMOOTHING` whose thin-plate spline through ``values`` (n, m) at
+    ``points`` (n, 2) px predicts each point best from the others (mean square over points and
+    columns; leave-one-out residuals by Rippa's formula, c_i / (A⁻¹)_ii of the augmented system).
+
+    Interpolating exactly (0) suits aberrations that change between neighbouring particles;
+    smoothing suits a field smoother than the particles' own scatter (their size, their height
+    on the substrate), which an exact interpolant passes through at every particle.
+    """
+    n = len(points)
+    r = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kernel = np.where(r > 0, r**2 * np.log(r), 0.0)
+    poly = np.column_stack([np.ones(n), points - points.mean(axis=0)])
+    system = np.block([[kernel, poly], [poly.T, np.zeros((3, 3))]])
+    best, best_err = 0.0, np.inf
+    for smoothing in _SMOOTHING:
+        system[np.arange(n), np.arange(n)] = smoothing
+        try:
+            inverse = np.linalg.inv(system)
+        except np.linalg.LinAlgError:
+            continue
+        coef = inverse[:n, :n] @ values
+        err = float(np.mean((coef / np.diag(inverse)[:n, None]) ** 2))
+        if err < best_err:
+            best, best_err = smoothing, err
+    return best
+
+
+def _spline(points: np.ndarray, values: np.ndarray, smoothing: float) -> RBFInterpolator:
+    """Thin-plate spline through ``values`` (n, m) at ``points`` (n, 2) px with ``smoothing``;
+    with fewer than three points, or all on one line, the linear radial basis with a constant."""
     try:
-        return RBFInterpolator(points, values, kernel="thin_plate_spline")
+        return RBFInterpolator(points, values, kernel="thin_plate_spline", smoothing=smoothing)
     except (ValueError, np.linalg.LinAlgError):
         return RBFInterpolator(points, values, kernel="linear", degree=0)
 
@@ -402,7 +437,8 @@ class CurveModel:
         Heights (tilt-corrected nm) at which the shape surface is interpolated, increasing.
     surface : RBFInterpolator
         Thin-plate spline over the field (px) of the particles' measured shape curves on
-        ``z_grid_nm`` (:func:`sampled_curves`).
+        ``z_grid_nm`` (:func:`sampled_curves`), smoothed as :func:`_loo_smoothing` chooses
+        over the grid heights inside most particles' monotonic ranges.
     z_range_nm : ndarray (n, 2)
         Each particle's monotonic z range around focus: a spot's z is sought inside the
         weighted mean of its natural neighbours' ranges.
@@ -441,7 +477,11 @@ class CurveModel:
         has = np.isfinite(curves).all(axis=1)
         if not has.any():
             raise ValueError("No kept calibration particle has two planes with a shape value.")
-        surface = _spline(np.column_stack([x, y])[has], curves[has])
+        points, curves = np.column_stack([x, y])[has], curves[has]
+        ranges = shape.z_range[kept][has]
+        central = (grid >= np.nanmedian(ranges[:, 0])) & (grid <= np.nanmedian(ranges[:, 1]))
+        smoothing = _loo_smoothing(points, curves[:, central]) if central.any() else 0.0
+        surface = _spline(points, curves, smoothing)
         return cls(x, y, grid, surface, shape.z_range[kept],
                    cal.local.dx[kept], cal.local.dy[kept], span, tuple(field_shape))  # fmt: skip
 
