@@ -30,7 +30,8 @@ from latentz.calibration.local import best_focus as amplitude_peak
 from latentz.calibration.polymodel import PolyModel
 from latentz.validation.datasets import ValidationData, _add, render_patches
 
-__all__ = ["best_focus", "focus_of", "localize_test", "origin_plane", "score", "study_truth"]
+__all__ = ["bead_fits", "best_focus", "emitter_fits", "focus_of", "localize_test", "origin_plane",
+           "score", "study_truth"]  # fmt: skip
 
 
 def focus_of(z_nm: np.ndarray, amplitude: np.ndarray) -> float:
@@ -56,6 +57,31 @@ def _fit_at(images: np.ndarray, x_px: float, y_px: float, roi_size: int) -> pd.D
     return fit.assign(x=fit["x"] + c0, y=fit["y"] + r0)
 
 
+def emitter_fits(
+    data: ValidationData,
+    x_px: float,
+    y_px: float,
+    defocus_nm: np.ndarray,
+    *,
+    roi_size: int,
+    photons: float = 1e5,
+) -> pd.DataFrame:
+    """Fits of one point emitter of ``photons`` at (x, y) px alone on the background, noise-free,
+    at each defocus (nm from the focal surface), in the ROI that ``localize`` would centre on it."""
+    h, w = data.frames.shape[1:]
+    images = np.full((len(defocus_nm), h, w), data.background)
+    _add(images, photons * render_patches(data.microscope, data.fields, x_px, y_px, defocus_nm,
+                                          roi_size), x_px, y_px)  # fmt: skip
+    return _fit_at(images, x_px, y_px, roi_size)
+
+
+def bead_fits(data: ValidationData, bead: int, *, roi_size: int) -> pd.DataFrame:
+    """Fits of calibration bead ``bead`` (a ``calibration_truth`` row) in its noise-free stack,
+    one per plane of ``data.z_nm``, in the ROI centred on its true position."""
+    row = data.calibration_truth.iloc[bead]
+    return _fit_at(data.expected[int(row["stack"])], row["x"], row["y"], roi_size)
+
+
 def best_focus(data: ValidationData, *, roi_size: int) -> tuple[np.ndarray, pd.DataFrame]:
     """Best focus of the calibration beads and of the test emitters (:func:`focus_of`).
 
@@ -68,23 +94,18 @@ def best_focus(data: ValidationData, *, roi_size: int) -> tuple[np.ndarray, pd.D
     low NA the amplitude can stay above the fitting window's threshold over a shorter range,
     and the peak of a polynomial fitted over another window is another best focus.
     """
-    cal = data.calibration_truth
     beads = np.array(
         [
-            focus_of(data.z_nm, _fit_at(data.expected[k], x, y, roi_size)["amplitude"].to_numpy())
-            for k, x, y in zip(cal["stack"], cal["x"], cal["y"], strict=True)
+            focus_of(data.z_nm, bead_fits(data, k, roi_size=roi_size)["amplitude"].to_numpy())
+            for k in range(len(data.calibration_truth))
         ]
     )
     grid = data.z_nm - np.mean(data.z_nm)
     order = LocalOptions().lateral_order
     rows = []
     emitters = data.test_truth.drop_duplicates("emitter")
-    h, w = data.frames.shape[1:]
     for e, x, y in zip(emitters["emitter"], emitters["x"], emitters["y"], strict=True):
-        images = np.full((grid.size, h, w), data.background)
-        _add(images, 1e5 * render_patches(data.microscope, data.fields, x, y, grid, roi_size),
-             x, y)  # fmt: skip
-        fits = _fit_at(images, x, y, roi_size)
+        fits = emitter_fits(data, x, y, grid, roi_size=roi_size)
         focus = focus_of(grid, fits["amplitude"].to_numpy())
         at = [
             PolyModel.from_estimate(grid[None, :], fits[axis].to_numpy()[None, :], order=order)(
