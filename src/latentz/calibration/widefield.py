@@ -342,7 +342,8 @@ def _weighted_mean(
 #: linear between planes; a finer grid changed z by < 1 nm on the validation microscope and
 #: cost 4x the time), and at most this many columns.
 _GRID_PER_PLANE, _MAX_GRID = 1, 1200
-#: Spots per block of the shape surface's evaluation ((block, grid) arrays).
+#: Spots per block of the shape surface's evaluation ((block, grid) arrays; the neighbour
+#: weights are computed once for all spots: each call triangulates the particles).
 _CHUNK = 4096
 
 
@@ -502,20 +503,18 @@ class CurveModel:
         rows = np.flatnonzero(inside & np.isfinite(s))
         out = [np.full(x.size, np.nan) for _ in range(3)]
         in_range = np.zeros(x.size, dtype=bool)
-        for block in np.array_split(rows, max(1, -(-rows.size // _CHUNK))):
-            if block.size == 0:
-                continue
-            xr, yr, sr = x[block], y[block], s[block]
-            q, p, wt = self._weights(xr, yr)  # the lateral models at the apparent position
-            xq, yq = xr, yr
-            for it in range(iterations + 1):
-                zr = self._z(xq, yq, sr, (q, p, wt) if it == 0 else self._weights(xq, yq))
-                dxr, dyr = (self._delta(model, q, p, wt, zr) for model in (self.dx, self.dy))
-                xq, yq = xr - dxr, yr - dyr
-            ok = np.isfinite(zr) & np.isfinite(dxr) & np.isfinite(dyr)
-            in_range[block] = ok
-            for full, part in zip(out, (zr, dxr, dyr), strict=True):
-                full[block] = np.where(ok, part, np.nan)
+        if rows.size == 0:
+            return out[0], out[1], out[2], in_range
+        xr, yr, sr = x[rows], y[rows], s[rows]
+        q, p, wt = self._weights(xr, yr)  # the lateral models at the apparent position
+        xq, yq = xr, yr
+        for it in range(iterations + 1):
+            zr = self._z(xq, yq, sr, (q, p, wt) if it == 0 else self._weights(xq, yq))
+            dxr, dyr = (self._delta(model, q, p, wt, zr) for model in (self.dx, self.dy))
+            xq, yq = xr - dxr, yr - dyr
+        in_range[rows] = np.isfinite(zr) & np.isfinite(dxr) & np.isfinite(dyr)
+        for full, part in zip(out, (zr, dxr, dyr), strict=True):
+            full[rows] = np.where(in_range[rows], part, np.nan)
         return out[0], out[1], out[2], in_range
 
     def _weights(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -535,7 +534,10 @@ class CurveModel:
         q, p, wt = weights
         lo, hi = (_weighted_mean(q, wt, self.z_range_nm[p, i], np.isfinite(self.z_range_nm[p, i]),
                                  x.size)[0] for i in (0, 1))  # fmt: skip
-        return crossing(self.z_grid_nm, self.shape_curves(x, y), s, lo, hi)
+        z = np.full(x.size, np.nan)
+        for b in np.array_split(np.arange(x.size), max(1, -(-x.size // _CHUNK))):
+            z[b] = crossing(self.z_grid_nm, self.shape_curves(x[b], y[b]), s[b], lo[b], hi[b])
+        return z
 
     def _delta(self, model: PolyModel, q, p, wt, z) -> np.ndarray:
         """Δx' or Δy' of each spot: its neighbours' own curves at its z (NaN z gives NaN)."""
