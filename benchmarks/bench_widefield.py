@@ -4,7 +4,8 @@ Runs :func:`latentz.accuracy.widefield_study` (500 calibration particles over th
 320 independent test particles within ±2 µm; see its docstring) and reports, for each field
 model, the RMSE after one global offset against three truths: the apparent position at best focus
 (the paper's), the geometric position, and the geometric position after removing one affine map
-of the field (what a magnification and rotation calibration absorbs). Then the same with the
+of the field (what a magnification and rotation calibration absorbs), and the fraction of the
+errors (against the paper's truth) within the 1σ that ``apply`` reported. Then the same with the
 iterated z <-> lateral correction (Supp. Note 1), and the throughput of ``Calibration.apply`` on
 2 x 10^5 spots over several rounds (median and range). Writes ``results/bench_widefield.md`` and
 ``results/bench_widefield.png``.
@@ -26,6 +27,7 @@ from _rounds import machine, spread, time_rounds, write_results
 
 from latentz.accuracy import error_figure, rmse, score, widefield_study
 from latentz.calibration import calibrate_traces
+from latentz.quality_report import coverage_table
 
 OUT = Path(__file__).resolve().parent / "results"
 Z_LIMIT_NM = 2000.0
@@ -49,6 +51,9 @@ def _rows(study: dict, label: str = "") -> list[dict]:
         focus = rmse(study["errors"][kind], z_limit_nm=Z_LIMIT_NM)
         geo = rmse(study["geometric"][kind], z_limit_nm=Z_LIMIT_NM)
         ax, ay = _affine_rmse(study["geometric"][kind])
+        errors = study["errors"][kind]
+        used = errors[errors["in_range"] & (errors["true_z_nm"].abs() <= Z_LIMIT_NM)]
+        cover = coverage_table(used, source="truth")["within 1σ (%)"]
         rows.append(
             {
                 "model": kind + label,
@@ -60,6 +65,7 @@ def _rows(study: dict, label: str = "") -> list[dict]:
                 "x, y (geometric, affine removed)": f"{ax:.2f}, {ay:.2f}",
                 "x, y uncorrected (focus)": f"{focus['raw_rmse_x_nm']:.1f}, "
                 f"{focus['raw_rmse_y_nm']:.1f}",
+                "1σ covers x / y / z (%)": " / ".join(f"{c:.1f}" for c in cover),
                 "in range": focus["in_range"],
                 "spots": int(focus["n"]),
             }

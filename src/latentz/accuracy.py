@@ -152,8 +152,9 @@ def error_table(
     -------
     DataFrame
         ``particle``, ``frame``, ``field_x``, ``field_y`` (true, px), ``true_z_nm``,
-        ``in_range``, ``err_x_nm``, ``err_y_nm``, ``err_z_nm`` (corrected) and ``raw_err_x_nm``,
-        ``raw_err_y_nm`` (apparent positions x', y' without correction).
+        ``in_range``, ``err_x_nm``, ``err_y_nm``, ``err_z_nm`` (corrected), ``raw_err_x_nm``,
+        ``raw_err_y_nm`` (apparent positions x', y' without correction) and the uncertainties
+        that ``apply`` reported, ``x_err_nm``, ``y_err_nm``, ``z_err_nm`` (1σ).
     """
     if truth not in ("focus", "geometric"):
         raise ValueError(f"Expected `truth` to be 'focus' or 'geometric', got {truth!r}.")
@@ -182,6 +183,7 @@ def error_table(
             "err_z_nm": located["z_nm"].to_numpy() - true_z,
             "raw_err_x_nm": (located["x"].to_numpy() - ref_x) * px,
             "raw_err_y_nm": (located["y"].to_numpy() - ref_y) * px,
+            **{f"{a}_err_nm": located[f"{a}_err_nm"].to_numpy() for a in "xyz"},
         }
     )
 

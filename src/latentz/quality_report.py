@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from latentz.calibration.heights import describe as describe_heights
 from latentz.report import Section
 
 __all__ = ["coverage_table", "quality_section", "SHAPE_NAMES"]
@@ -139,7 +140,8 @@ def quality_section(
         f"{_FIELD_NAMES.get(cal.field_model, cal.field_model)}; "
         f"{_why(cal, 'field_model', asked)}.",
         f"Particles: {n} found, {n_kept} kept, {culled_text}. Pixel size "
-        f"{cal.camera.pixel_size_nm:.2f} nm; substrate tilt {cal.tilt_mrad:.2f} mrad removed.",
+        f"{cal.camera.pixel_size_nm:.2f} nm; substrate tilt {cal.tilt_mrad:.2f} mrad removed. "
+        + describe_heights(cal.options.get("particle_heights")),
     ]
     tables = {}
     if truth:

@@ -88,7 +88,8 @@ def _exact(cal, x, y, values, n_terms):
 
 def test_tabulated_model_matches_an_exact_per_spot_fit(study):
     """The grid (linear interpolation between tabulated columns) against a Zernike fit of the
-    particles' exact values at each spot's s, then at its z (with the terms of its columns)."""
+    particles' exact values at each spot's s, then at its z (with the terms and the particles
+    of its columns)."""
     cal = study["calibrations"]["zernike"]
     wide = cal.widefield
     rng = np.random.default_rng(0)
@@ -108,6 +109,8 @@ def test_tabulated_model_matches_an_exact_per_spot_fit(study):
         lateral_terms = wide.dx.n_terms_effective[k : k + 2]
         if terms[0] != terms[1] or lateral_terms[0] != lateral_terms[1]:
             continue
+        if not np.array_equal(wide.axial.valid[:, j], wide.axial.valid[:, j + 1]):
+            continue  # a particle's range ends between the columns: another fit on each side
         z_exact = _exact(cal, x[i], y[i], cal.local_z(s[i])[cal.kept], terms[0])
         dx_l, dy_l = cal.local_delta(z_exact)
         dx_exact = _exact(cal, x[i], y[i], dx_l[cal.kept], lateral_terms[0])

@@ -288,13 +288,21 @@ class Calibration:
         return np.flatnonzero(~self.culled)
 
     @property
+    def heights_nm(self) -> np.ndarray:
+        """Each particle's own height (nm) taken off its models; zeros where none was."""
+        heights = self.options.get("particle_heights", {}).get("heights_nm")
+        return np.zeros(len(self.traces)) if heights is None else np.asarray(heights, float)
+
+    @property
     def particles(self) -> pd.DataFrame:
         """One row per calibration particle.
 
         Columns: ``particle``, ``stack``; ``x``, ``y`` (field pixels) and ``x_nm``, ``y_nm``;
-        ``z_f`` (piezo z of best focus, nm) and ``z_f_nm`` (after tilt removal: the field
-        curvature); ``in_focus``; for each modelled shape s, ``sigma_z_<s>`` (mean σ_z over its
-        monotonic range, nm) and ``z_min_<s>``, ``z_max_<s>`` (that range, tilt-corrected nm);
+        ``z_f`` (piezo z of best focus, nm), ``height_nm`` (the particle's own height taken off
+        its models, :mod:`latentz.calibration.heights`) and ``z_f_nm`` (after tilt and height
+        removal: the field curvature); ``in_focus``; for each modelled shape s,
+        ``sigma_z_<s>`` (mean σ_z over its monotonic range, nm) and ``z_min_<s>``,
+        ``z_max_<s>`` (that range, tilt-corrected nm);
         ``sigma_z``, ``z_min_nm``, ``z_max_nm`` for the calibration's shape; ``sigma_dx_nm``,
         ``sigma_dy_nm``; ``culled``, ``cull_reason`` (= ``reason``) and the culling scores
         ``score_<feature>``; and the polynomial coefficients (Chebyshev, scaled domain):
@@ -674,8 +682,9 @@ def _particle_table(cal: Calibration) -> pd.DataFrame:
             "y": pos[:, 1],
             "x_nm": pos[:, 0] * px,
             "y_nm": pos[:, 1] * px,
-            "z_f": local.z_f + cal.plane(*(pos * px).T),
+            "z_f": local.z_f + cal.plane(*(pos * px).T) + cal.heights_nm,
             "z_f_nm": local.z_f,
+            "height_nm": cal.heights_nm,
             "in_focus": local.in_focus,
         }
     )

@@ -22,6 +22,7 @@ from latentz.calibration.calibration import FIELD_CHOICES, PAPER_SHAPES, Calibra
 from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
 from latentz.calibration.depth import depth_ratio_per_nm
+from latentz.calibration.heights import particle_heights
 from latentz.calibration.local import LocalOptions, fit_local
 from latentz.calibration.roi import MIN_ROI, roi_for_width, roi_limit, widest_spot_px
 from latentz.calibration.shape import SHAPES, astigmatism_angle
@@ -132,6 +133,8 @@ def calibrate(
         Where the fits run: CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``).
     **options
         ``tilt`` (bool, default True): fit and remove the substrate tilt;
+        ``heights`` (bool, default True): take each particle's own height off its models where
+        its brightness predicts it (beads of unequal size; :mod:`latentz.calibration.heights`);
         ``cull`` (bool, default True) and ``cull_threshold`` (robust z-score, default 6),
         ``neighbours`` (default 8) — with fewer than 10 usable particles only outright failures
         are culled, as population statistics need a population; and the
@@ -275,6 +278,7 @@ def calibrate_traces(
     field_model: str = "auto",
     n_terms: int = 400,
     tilt: bool = True,
+    heights: bool = True,
     cull: bool = True,
     cull_threshold: float = 6.0,
     neighbours: int = 8,
@@ -353,6 +357,11 @@ def calibrate_traces(
     else:
         reason = _reasons(hard)
     _check_kept(culled, reason, roi_size)
+    own = np.zeros(len(traces))
+    height_fit: dict[str, Any] = {"applied": False}
+    if heights:
+        own, height_fit = particle_heights(traces, local.z_nm, local.z_f, position, ~culled)
+        plane = _tilt_plane(substrate_nm, local.z_f - own, ~culled, tilt)
     field_model = _field_model_for(field_model, int(np.count_nonzero(~culled)))
     options_used = {
         "shape": shape,
@@ -360,6 +369,8 @@ def calibrate_traces(
         "field_model": field_model,
         "n_terms": n_terms,
         "tilt": tilt,
+        "heights": heights,
+        "particle_heights": height_fit,
         "cull": cull,
         "cull_threshold": cull_threshold,
         "neighbours": neighbours,
@@ -373,7 +384,7 @@ def calibrate_traces(
     cal = Calibration(
         camera=camera,
         traces=traces,
-        local=local.shifted(plane(*substrate_nm.T)),
+        local=local.shifted(plane(*substrate_nm.T) + own),
         plane=plane,
         culled=culled,
         reason=reason,
