@@ -93,7 +93,7 @@ def particle_heights(
     dof = m - design.shape[1]
     scale = float(resid @ resid) / dof
     gram = design.T @ design
-    if dof < 1 or np.linalg.cond(gram) > 1e12 or scale <= 0:
+    if np.linalg.cond(gram) > 1e12 or scale <= 0:  # collinear particles, or an exact fit
         return heights, summary
     err = float(np.sqrt(scale * np.linalg.inv(gram)[-1, -1]))
     slope = float(coef[-1])
