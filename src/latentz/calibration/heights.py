@@ -46,11 +46,13 @@ def brightness(traces: Any, z_nm: np.ndarray, z_f: np.ndarray) -> np.ndarray:
     :data:`_FOCUS_PLANES` planes nearest its best focus ``z_f``; ``z_nm`` (n, n_z), nm)."""
     photons = photons_of(traces["amplitude"], traces["wx"], traces["wy"], traces["rho"])
     usable = np.isfinite(photons) & (photons > 0)
-    distance = np.where(usable, np.abs(z_nm - z_f[:, None]), np.inf)
+    out = np.full(len(z_f), np.nan)
+    rows = usable.any(axis=1) & np.isfinite(z_f)  # NaN, not a warning, for the others
+    distance = np.where(usable[rows], np.abs(z_nm[rows] - z_f[rows, None]), np.inf)
     nearest = np.argsort(distance, axis=1)[:, :_FOCUS_PLANES]
-    chosen = np.take_along_axis(np.where(usable, photons, np.nan), nearest, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.log(np.nanmedian(chosen, axis=1))
+    chosen = np.take_along_axis(np.where(usable[rows], photons[rows], np.nan), nearest, axis=1)
+    out[rows] = np.log(np.nanmedian(chosen, axis=1))
+    return out
 
 
 def _surface(position_px: np.ndarray, degree: int) -> np.ndarray:
