@@ -88,3 +88,37 @@ def test_beads_of_one_size_are_left_where_they_are():
     fit = cal.options["particle_heights"]
     assert fit["particles"] >= 20
     assert not fit["applied"], fit
+
+
+def _synthetic(slope_nm: float, width_px: float, seed: int = 0):
+    """Traces-like columns of 40 particles whose best focus is a smooth surface plus
+    ``slope_nm`` times their log brightness (7 % s.d.), imaged ``width_px`` wide in focus."""
+    from latentz.fit._model import photons_of
+
+    rng = np.random.default_rng(seed)
+    n, z = 40, np.linspace(-1000.0, 1000.0, 21)
+    position = rng.uniform(0, 400, (n, 2))
+    log_n = rng.normal(0.0, 0.07, n)
+    z_f = 1e-3 * (position[:, 0] - 200) ** 2 + slope_nm * log_n + rng.normal(0.0, 1.0, n)
+    width = np.full((n, z.size), width_px)
+    unit = photons_of(np.ones_like(width), width, width, np.zeros_like(width))
+    traces = {"amplitude": np.exp(12 + log_n)[:, None] / unit, "wx": width, "wy": width,
+              "rho": np.zeros_like(width)}  # fmt: skip
+    return traces, np.tile(z, (n, 1)), z_f, position, log_n
+
+
+@pytest.mark.parametrize(("slope_nm", "applied"), [(150.0, True), (3000.0, False)])
+def test_a_slope_implying_beads_wider_than_their_images_is_not_applied(slope_nm, applied):
+    # 2.5 px of 100 nm in focus: FWHM 589 nm, so beads up to 883 nm; 4|k| = 600 and 12,000 nm
+    from latentz.calibration.heights import particle_heights
+
+    traces, z_nm, z_f, position, log_n = _synthetic(slope_nm, 2.5)
+    heights, fit = particle_heights(traces, z_nm, z_f, position, np.ones(40, bool),
+                                    pixel_size_nm=100.0)  # fmt: skip
+    assert fit["p_value"] < 1e-6  # significant either way
+    assert fit["implied_diameter_nm"] == pytest.approx(4 * slope_nm, rel=0.05)
+    assert fit["applied"] is applied
+    if applied:  # the slope times the brightness less its cubic trend over 40 particles (0.86)
+        assert np.corrcoef(heights, log_n)[0, 1] > 0.8
+    else:
+        assert not heights.any()

@@ -16,7 +16,9 @@ relation between brightness and focus. N is the median of the fitted photons ove
 nearest each particle's focus, less its smooth trend across the field (the same polynomial: the
 illumination, and the share of an aberrated spot that a Gaussian holds, vary with field position
 and are no bead's size). Where k is significant (two-sided p below :data:`P_VALUE`, t
-distribution), each kept particle's δ = k × that brightness residual is taken off its models,
+distribution) and plausible (the beads it implies, at least 4|k| across, are no wider than
+:data:`MAX_DIAMETER_PER_FWHM` times their in-focus images), each kept particle's δ = k × that
+brightness residual is taken off its models,
 which puts every particle at the height of a bead of the brightness typical at its place;
 otherwise nothing moves. Beads of one size, or brightness that varies for other reasons
 (labelling), leave k insignificant.
@@ -31,7 +33,7 @@ from scipy import stats
 
 from latentz.fit._model import photons_of
 
-__all__ = ["particle_heights", "describe", "P_VALUE", "MIN_PARTICLES"]
+__all__ = ["particle_heights", "describe", "P_VALUE", "MIN_PARTICLES", "MAX_DIAMETER_PER_FWHM"]
 
 #: Significance below which the fitted slope is applied (two-sided).
 P_VALUE = 1e-3
@@ -39,20 +41,33 @@ P_VALUE = 1e-3
 MIN_PARTICLES = 8
 #: Planes nearest each particle's best focus whose median photons are its brightness.
 _FOCUS_PLANES = 7
+#: Largest bead diameter, in FWHM of the beads' own in-focus images, that a slope may imply:
+#: a bead imaged in focus is at least about 0.7 times its diameter wide. A slope k implies
+#: beads of diameter 2pk, at least 4|k|; a steeper one is the field's (aberrations that change
+#: both the Gaussian's share of the light and the focus, beyond the polynomial), not a size.
+MAX_DIAMETER_PER_FWHM = 1.5
+_FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+
+def _at_focus(values: np.ndarray, z_nm: np.ndarray, z_f: np.ndarray) -> np.ndarray:
+    """Median of each row of ``values`` (n, n_z) over its :data:`_FOCUS_PLANES` usable (finite,
+    positive) planes nearest its best focus ``z_f`` (``z_nm`` (n, n_z), nm); NaN for a row with
+    none, without a numpy warning."""
+    usable = np.isfinite(values) & (values > 0)
+    out = np.full(len(z_f), np.nan)
+    rows = usable.any(axis=1) & np.isfinite(z_f)
+    distance = np.where(usable[rows], np.abs(z_nm[rows] - z_f[rows, None]), np.inf)
+    nearest = np.argsort(distance, axis=1)[:, :_FOCUS_PLANES]
+    chosen = np.take_along_axis(np.where(usable[rows], values[rows], np.nan), nearest, axis=1)
+    out[rows] = np.nanmedian(chosen, axis=1)
+    return out
 
 
 def brightness(traces: Any, z_nm: np.ndarray, z_f: np.ndarray) -> np.ndarray:
-    """ln of each particle's photons (the fitted Gaussian's integral, median over the
-    :data:`_FOCUS_PLANES` planes nearest its best focus ``z_f``; ``z_nm`` (n, n_z), nm)."""
+    """ln of each particle's photons near its best focus (the fitted Gaussian's integral,
+    :func:`_at_focus`)."""
     photons = photons_of(traces["amplitude"], traces["wx"], traces["wy"], traces["rho"])
-    usable = np.isfinite(photons) & (photons > 0)
-    out = np.full(len(z_f), np.nan)
-    rows = usable.any(axis=1) & np.isfinite(z_f)  # NaN, not a warning, for the others
-    distance = np.where(usable[rows], np.abs(z_nm[rows] - z_f[rows, None]), np.inf)
-    nearest = np.argsort(distance, axis=1)[:, :_FOCUS_PLANES]
-    chosen = np.take_along_axis(np.where(usable[rows], photons[rows], np.nan), nearest, axis=1)
-    out[rows] = np.log(np.nanmedian(chosen, axis=1))
-    return out
+    return np.log(_at_focus(photons, z_nm, z_f))
 
 
 def _surface(position_px: np.ndarray, degree: int) -> np.ndarray:
@@ -65,14 +80,22 @@ def _surface(position_px: np.ndarray, degree: int) -> np.ndarray:
 
 
 def particle_heights(
-    traces: Any, z_nm: np.ndarray, z_f: np.ndarray, position_px: np.ndarray, kept: np.ndarray
+    traces: Any,
+    z_nm: np.ndarray,
+    z_f: np.ndarray,
+    position_px: np.ndarray,
+    kept: np.ndarray,
+    *,
+    pixel_size_nm: float,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Each particle's own height offset δ (nm; zero where not applied) and the fit's summary.
 
     ``z_nm`` (n, n_z) and ``z_f`` (n,) are on the piezo axis, ``position_px`` (n, 2) in field
     pixels, ``kept`` (n,) the particles to fit and to move. The summary holds ``slope_nm`` (k,
     nm per e-fold of brightness), ``slope_err_nm``, ``p_value``, ``particles`` (used),
-    ``applied``, ``rms_nm`` (of the δ applied) and, where applied, ``heights_nm`` (δ, a list).
+    ``implied_diameter_nm`` (4|k|) and ``max_diameter_nm`` (:data:`MAX_DIAMETER_PER_FWHM` times
+    the median in-focus FWHM), ``applied`` (significant and plausible), ``rms_nm`` (of the δ
+    applied) and, where applied, ``heights_nm`` (δ, a list).
     """
     n = len(z_f)
     heights = np.zeros(n)
@@ -100,7 +123,12 @@ def particle_heights(
     err = float(np.sqrt(scale * np.linalg.inv(gram)[-1, -1]))
     slope = float(coef[-1])
     p = float(2 * stats.t.sf(abs(slope) / err, dof))
-    summary.update(slope_nm=slope, slope_err_nm=err, p_value=p, applied=p < P_VALUE)
+    width_px = _at_focus(np.sqrt(np.abs(traces["wx"] * traces["wy"])), z_nm, z_f)[use]
+    largest = MAX_DIAMETER_PER_FWHM * _FWHM_PER_SIGMA * pixel_size_nm * np.nanmedian(width_px)
+    implied = 4 * abs(slope)  # the diameter of surface-dyed beads; 6|k| if dyed throughout
+    summary.update(slope_nm=slope, slope_err_nm=err, p_value=p, implied_diameter_nm=implied,
+                   max_diameter_nm=float(largest),
+                   applied=bool(p < P_VALUE and implied <= largest))  # fmt: skip
     if summary["applied"]:
         heights[use] = slope * own
         summary["rms_nm"] = float(np.sqrt(np.mean(heights[use] ** 2)))
@@ -121,5 +149,11 @@ def describe(summary: dict[str, Any] | None) -> str:
         return (f"Particle heights: best focus moves {slope} of brightness (p = "
                 f"{summary['p_value']:.1e}), as beads of unequal size do; each particle's models "
                 f"were moved by its own height, {summary['rms_nm']:.1f} nm RMS.")  # fmt: skip
+    if summary["p_value"] < P_VALUE:
+        return (f"Particle heights: best focus follows brightness ({slope}, p = "
+                f"{summary['p_value']:.1e}), but that implies beads at least "
+                f"{summary['implied_diameter_nm']:.0f} nm wide, more than their in-focus images "
+                f"allow ({summary['max_diameter_nm']:.0f} nm): the field's structure, not the "
+                f"beads' size; no particle moved.")  # fmt: skip
     return (f"Particle heights: best focus does not follow brightness ({slope}, p = "
             f"{summary['p_value']:.2f}); no particle moved.")  # fmt: skip

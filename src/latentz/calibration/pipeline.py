@@ -360,7 +360,8 @@ def calibrate_traces(
     own = np.zeros(len(traces))
     height_fit: dict[str, Any] = {"applied": False}
     if heights:
-        own, height_fit = particle_heights(traces, local.z_nm, local.z_f, position, ~culled)
+        own, height_fit = particle_heights(traces, local.z_nm, local.z_f, position, ~culled,
+                                           pixel_size_nm=px)  # fmt: skip
     if height_fit["applied"]:  # the focal plane of the particles at their common height
         plane = _tilt_plane(substrate_nm, local.z_f - own, ~culled, tilt)
     field_model = _field_model_for(field_model, int(np.count_nonzero(~culled)))
