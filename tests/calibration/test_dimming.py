@@ -7,9 +7,10 @@ a Gaussian), with read noise, at a background chosen so that its ratio c = (b + 
 falls on one of the refit levels."""
 
 import numpy as np
+import pandas as pd
 import pytest
 
-from latentz.calibration.dimming import dim_fits, shape_shift
+from latentz.calibration.dimming import EDGE_QUANTILE, dim_fits, dimmest, shape_shift
 from latentz.calibration.shape import shape_value
 from latentz.fit import PARAMS, fit_arrays
 
@@ -59,13 +60,20 @@ def test_refit_over_a_raised_background_is_the_dim_emitters_fit(psf):
     assert abs(fit.params[0, 4] - dim[4]) > 0.03 and abs(fit.params[0, 5] - dim[5]) > 0.03
 
 
-def test_shape_shift_is_the_dim_minus_the_bright_shape_value(psf):
+@pytest.fixture(scope="module")
+def bright_traces(psf):
+    """The bright image's fit and its refits, as one particle's traces at one plane."""
     bright = 2e5 * psf + 10.0
     fit = fit_arrays(bright[None], device="cpu")
     traces = {
         **dim_fits(bright[None], fit.params, method="mle", device="cpu"),
         **{k: fit.params[:, PARAMS.index(k)] for k in ("amplitude", "wx", "wy", "rho")},
     }
+    return fit, traces
+
+
+def test_shape_shift_is_the_dim_minus_the_bright_shape_value(psf, bright_traces):
+    fit, traces = bright_traces
     own_c = (fit.params[0, 3]) / fit.params[0, 2]
     c = 0.5  # between two levels: interpolated in log c
     dim = _dim_fit(psf, 1500.0, c)
@@ -76,3 +84,57 @@ def test_shape_shift_is_the_dim_minus_the_bright_shape_value(psf):
     # as bright as the calibration, no shift
     same = shape_shift(_rho_w, traces.__getitem__, np.array([own_c]), np.array([own_c]))
     assert same[0] == 0.0
+
+
+def test_the_shift_starts_where_asked(psf, bright_traces):
+    fit, traces = bright_traces
+    own_c = fit.params[0, 3] / fit.params[0, 2]
+    start, c = 0.1, 0.5  # the correction starts at c = 0.1: what a spot dimmer than that gains
+    two = {name: np.repeat(value, 2) for name, value in traces.items()}  # two spots
+    shift = shape_shift(_rho_w, two.__getitem__, np.array([c, 0.05]), np.full(2, own_c),
+                        c_from=np.full(2, start))  # fmt: skip
+    want = _rho_w(*_dim_fit(psf, 1500.0, c)[[2, 4, 5, 6]]) - _rho_w(
+        *_dim_fit(psf, 1500.0, start)[[2, 4, 5, 6]]
+    )
+    assert shift[0] == pytest.approx(want, rel=0.05)
+    assert abs(want) > 0.01
+    assert shift[1] == 0.0  # brighter than where it starts: no shift
+
+
+def test_dimmest_is_the_quantile_of_the_particles_at_each_depth():
+    rng = np.random.default_rng(0)
+    planes = np.arange(-1000.0, 1001.0, 50.0)
+    # 4000 particles, each on the same planes shifted by its focus (< half a plane), each with
+    # a background ratio c uniform on [1, 2] at every plane
+    z = planes[None, :] - rng.uniform(-20, 20, (4000, 1))
+    c = rng.uniform(1.0, 2.0, z.shape)
+    c[:, :3] = np.nan  # no particle imaged there: no bin
+    centres, edge = dimmest(z, c)
+    assert np.allclose(centres, planes[3:], atol=20.0)
+    assert np.allclose(edge, 1.0 + EDGE_QUANTILE, atol=0.01)
+
+
+def test_spots_within_the_calibrations_brightness_are_not_corrected(small_calibration):
+    """A spot dimmer than its nearest particle but as bright as the calibration's dimmer
+    particles keeps its z; one ten times dimmer than any is moved."""
+    cal = small_calibration
+    p = int(cal.kept[0])
+    plane = cal.traces["amplitude"].shape[1] // 2 + 4  # 0.4 µm from focus
+    spot = {k: cal.traces[k][p, plane] for k in ("amplitude", "background", "wx", "wy", "rho")}
+    s2 = cal.camera.readnoise**2
+    own = (spot["background"] + s2) / spot["amplitude"]
+    at = cal.local.z_nm[p, plane]
+    z_edge, c_edge = dimmest(cal.local.z_nm[cal.kept], (cal.traces["background"][cal.kept] + s2)
+                             / cal.traces["amplitude"][cal.kept])  # fmt: skip
+    edge = np.interp(at, z_edge, c_edge)
+    assert edge > 1.05 * own  # the test needs a particle brighter than the edge
+    x, y = cal.positions[p]
+    z = {}
+    for label, c in (("within", 0.5 * (own + edge)), ("dim", 10 * edge)):
+        table = pd.DataFrame([{**spot, "x": x, "y": y}])
+        table["background"] = c * table["amplitude"] - s2
+        with_b = cal.apply(table)["z_nm"].iloc[0]
+        without = cal.apply(table.drop(columns="background"))["z_nm"].iloc[0]
+        z[label] = with_b - without
+    assert z["within"] == 0.0
+    assert abs(z["dim"]) > 1.0  # nm
