@@ -114,27 +114,39 @@ def test_dimmest_is_the_quantile_of_the_particles_at_each_depth():
     assert np.allclose(edge, 1.0 + EDGE_QUANTILE, atol=0.01)
 
 
-def test_spots_within_the_calibrations_brightness_are_not_corrected(small_calibration):
-    """A spot dimmer than its nearest particle but as bright as the calibration's dimmer
-    particles keeps its z; one ten times dimmer than any is moved."""
-    cal = small_calibration
+def _dimming_moves(cal, c: float) -> float:
+    """How far (nm) the brightness correction moves the z of a spot made of the first kept
+    particle's fit 0.4 µm from focus, with its background set for a ratio c."""
     p = int(cal.kept[0])
-    plane = cal.traces["amplitude"].shape[1] // 2 + 4  # 0.4 µm from focus
+    plane = cal.traces["amplitude"].shape[1] // 2 + 4
     spot = {k: cal.traces[k][p, plane] for k in ("amplitude", "background", "wx", "wy", "rho")}
+    x, y = cal.positions[p]
+    table = pd.DataFrame([{**spot, "x": x, "y": y}])
+    table["background"] = c * table["amplitude"] - cal.camera.readnoise**2
+    with_b = cal.apply(table)["z_nm"].iloc[0]
+    return with_b - cal.apply(table.drop(columns="background"))["z_nm"].iloc[0]
+
+
+def test_spots_within_the_calibrations_brightness_are_not_corrected(small_calibration):
+    """Where the calibration's brightness follows its beads' sizes (heights taken off), a spot
+    dimmer than its nearest particle but as bright as the calibration's dimmer particles keeps
+    its z, and one ten times dimmer than any is moved. With beads of one size, both are."""
+    import copy
+
+    cal = small_calibration
+    assert cal.options["particle_heights"]["applied"]  # the simulator's beads: 24 nm s.d.
+    p = int(cal.kept[0])
+    plane = cal.traces["amplitude"].shape[1] // 2 + 4
     s2 = cal.camera.readnoise**2
-    own = (spot["background"] + s2) / spot["amplitude"]
-    at = cal.local.z_nm[p, plane]
+    own = (cal.traces["background"][p, plane] + s2) / cal.traces["amplitude"][p, plane]
     z_edge, c_edge = dimmest(cal.local.z_nm[cal.kept], (cal.traces["background"][cal.kept] + s2)
                              / cal.traces["amplitude"][cal.kept])  # fmt: skip
-    edge = np.interp(at, z_edge, c_edge)
+    edge = np.interp(cal.local.z_nm[p, plane], z_edge, c_edge)
     assert edge > 1.05 * own  # the test needs a particle brighter than the edge
-    x, y = cal.positions[p]
-    z = {}
-    for label, c in (("within", 0.5 * (own + edge)), ("dim", 10 * edge)):
-        table = pd.DataFrame([{**spot, "x": x, "y": y}])
-        table["background"] = c * table["amplitude"] - s2
-        with_b = cal.apply(table)["z_nm"].iloc[0]
-        without = cal.apply(table.drop(columns="background"))["z_nm"].iloc[0]
-        z[label] = with_b - without
-    assert z["within"] == 0.0
-    assert abs(z["dim"]) > 1.0  # nm
+    within, dim = 0.5 * (own + edge), 10 * edge
+    assert _dimming_moves(cal, within) == 0.0
+    assert abs(_dimming_moves(cal, dim)) > 1.0  # nm
+    one_size = copy.deepcopy(cal)
+    one_size.options["particle_heights"]["applied"] = False
+    assert abs(_dimming_moves(one_size, within)) > 0.01  # nm
+    assert _dimming_moves(one_size, dim) == pytest.approx(_dimming_moves(cal, dim), abs=0.01)

@@ -491,12 +491,15 @@ class Calibration:
     ) -> np.ndarray:  # fmt: skip
         """How much brighter-than-the-spot calibration images shift the spots' shape values
         (:func:`~latentz.calibration.dimming.shape_shift`), from particle ``p``'s refits at the
-        spots' first z; 0 where that is unknown. Spots within the calibration's own range of
-        brightness at their depth (up to its dimmest particles,
+        spots' first z; 0 where that is unknown.
+
+        Where the calibration particles' brightness follows their size (their heights were
+        taken off, :mod:`latentz.calibration.heights`), spots within the calibration's own range
+        of brightness at their depth (up to its dimmest particles,
         :func:`~latentz.calibration.dimming.dimmest`) are not shifted; beyond that edge the shift
         starts there, and its start moves back to the particle's own ratio c as the spot's c
         goes as far again (in log c) beyond the edge, so that dim emitters get the whole shift
-        from their particle's own fit."""
+        from their particle's own fit (:mod:`~latentz.calibration.dimming` notes)."""
         from latentz.calibration.dimming import dimmest, shape_shift
 
         s2 = self.camera.readnoise**2
@@ -512,15 +515,17 @@ class Calibration:
         with np.errstate(invalid="ignore", divide="ignore"):
             c_spot = (background + s2) / amplitude
             c_own = (trace_at("background") + s2) / trace_at("amplitude")
-        if "dimmest" not in self._cache:
-            rows = self.kept
+        c_from = c_own
+        if self.options.get("particle_heights", {}).get("applied"):
+            if "dimmest" not in self._cache:
+                rows = self.kept
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    c = (self.traces["background"][rows] + s2) / self.traces["amplitude"][rows]
+                self._cache["dimmest"] = dimmest(self.local.z_nm[rows], c)
+            edge = np.fmax(c_own, np.interp(z, *self._cache["dimmest"]))
+            # the start fades from the edge back to the particle's own c as far again beyond it
             with np.errstate(invalid="ignore", divide="ignore"):
-                c = (self.traces["background"][rows] + s2) / self.traces["amplitude"][rows]
-            self._cache["dimmest"] = dimmest(self.local.z_nm[rows], c)
-        edge = np.fmax(c_own, np.interp(z, *self._cache["dimmest"]))
-        # the start fades from the edge back to the particle's own c as far again beyond it
-        with np.errstate(invalid="ignore", divide="ignore"):
-            c_from = np.clip(edge**2 / c_spot, c_own, edge)
+                c_from = np.clip(edge**2 / c_spot, c_own, edge)
         shift = shape_shift(shape_of, trace_at, c_spot, c_own, c_from=c_from)
         return np.where(np.isfinite(shift), shift, 0.0)
 
