@@ -1,5 +1,7 @@
 """PolyModel: batched scaled-Chebyshev least squares against analytic polynomials and NumPy."""
 
+import warnings
+
 import numpy as np
 import pytest
 from numpy.polynomial import Chebyshev, Polynomial
@@ -62,3 +64,13 @@ def test_bad_input():
     model = PolyModel.from_estimate(Z, Z, order=1)
     with pytest.raises(ValueError, match="rows"):
         model(np.zeros(3))
+
+
+def test_derivative_of_a_row_without_width_is_nan_without_a_warning():
+    good = PolyModel.from_estimate(Z, 2e-4 * Z + 5.0, order=1)
+    rows = PolyModel(np.vstack([good.coef, good.coef]), np.array([good.domain[0], [7.0, 7.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        slope = rows.derivative()(np.array([[0.0], [7.0]]))
+    assert slope[0, 0] == pytest.approx(2e-4)
+    assert np.isnan(slope[1, 0])

@@ -147,11 +147,13 @@ class PolyModel:
         return cheb.chebval(t, c, tensor=False)
 
     def derivative(self) -> PolyModel:
-        """The derivative with respect to the unscaled variable."""
+        """The derivative with respect to the unscaled variable (NaN for rows whose domain has
+        no width)."""
         if self.order == 0:
             return PolyModel(np.zeros_like(self.coef), self.domain)
         span = self.domain[:, 1] - self.domain[:, 0]
-        return PolyModel(cheb.chebder(self.coef, axis=1) * (2.0 / span)[:, None], self.domain)
+        scale = np.divide(2.0, span, out=np.full_like(span, np.nan), where=span > 0)
+        return PolyModel(cheb.chebder(self.coef, axis=1) * scale[:, None], self.domain)
 
     def shifted(self, offset: Any) -> PolyModel:
         """The same polynomials minus a constant per row (``offset`` of shape (n,))."""

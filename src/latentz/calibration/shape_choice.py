@@ -113,7 +113,7 @@ def score_shapes(
         bright = _brightness(local, shape) if uses_amplitude(shape) else np.zeros_like(bound)
         parts[shape] = (cv, bound, bright)
         common |= usable_planes(bound) & valid[:, None]
-    z = np.where(common, local.z_nm, np.nan)
+    z = np.where(common, local.z_nm, np.nan)[common.any(axis=1)]  # particles with common planes
     span = np.nanmax(z, axis=1) - np.nanmin(z, axis=1) if common.any() else np.zeros(1)
     guess = float(np.nanmean(span)) / np.sqrt(12.0) if common.any() else np.nan
     rows = []
