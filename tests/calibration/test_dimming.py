@@ -10,7 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from latentz.calibration.dimming import EDGE_QUANTILE, dim_fits, dimmest, shape_shift
+from latentz.calibration.dimming import (
+    EDGE_QUANTILE,
+    background_ratio,
+    dim_fits,
+    dimmest,
+    shape_shift,
+)
 from latentz.calibration.shape import shape_value
 from latentz.fit import PARAMS, fit_arrays
 
@@ -137,10 +143,9 @@ def test_spots_within_the_calibrations_brightness_are_not_corrected(small_calibr
     assert cal.options["particle_heights"]["applied"]  # the simulator's beads: 24 nm s.d.
     p = int(cal.kept[0])
     plane = cal.traces["amplitude"].shape[1] // 2 + 4
-    s2 = cal.camera.readnoise**2
-    own = (cal.traces["background"][p, plane] + s2) / cal.traces["amplitude"][p, plane]
-    z_edge, c_edge = dimmest(cal.local.z_nm[cal.kept], (cal.traces["background"][cal.kept] + s2)
-                             / cal.traces["amplitude"][cal.kept])  # fmt: skip
+    c = background_ratio(cal.traces["background"], cal.traces["amplitude"], cal.camera.readnoise)
+    own = c[p, plane]
+    z_edge, c_edge = dimmest(cal.local.z_nm[cal.kept], c[cal.kept])
     edge = np.interp(cal.local.z_nm[p, plane], z_edge, c_edge)
     assert edge > 1.05 * own  # the test needs a particle brighter than the edge
     within, dim = 0.5 * (own + edge), 10 * edge

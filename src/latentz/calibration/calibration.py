@@ -500,9 +500,9 @@ class Calibration:
         starts there, and its start moves back to the particle's own ratio c as the spot's c
         goes as far again (in log c) beyond the edge, so that dim emitters get the whole shift
         from their particle's own fit (:mod:`~latentz.calibration.dimming` notes)."""
-        from latentz.calibration.dimming import dimmest, shape_shift
+        from latentz.calibration.dimming import background_ratio, dimmest, shape_shift
 
-        s2 = self.camera.readnoise**2
+        readnoise = self.camera.readnoise
         at = _row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
@@ -512,15 +512,14 @@ class Calibration:
             return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
                                amplitude_ref=ref)  # fmt: skip
 
-        with np.errstate(invalid="ignore", divide="ignore"):
-            c_spot = (background + s2) / amplitude
-            c_own = (trace_at("background") + s2) / trace_at("amplitude")
+        c_spot = background_ratio(background, amplitude, readnoise)
+        c_own = background_ratio(trace_at("background"), trace_at("amplitude"), readnoise)
         c_from = c_own
         if self.options.get("particle_heights", {}).get("applied"):
             if "dimmest" not in self._cache:
                 rows = self.kept
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    c = (self.traces["background"][rows] + s2) / self.traces["amplitude"][rows]
+                c = background_ratio(self.traces["background"][rows],
+                                     self.traces["amplitude"][rows], readnoise)  # fmt: skip
                 self._cache["dimmest"] = dimmest(self.local.z_nm[rows], c)
             edge = np.fmax(c_own, np.interp(z, *self._cache["dimmest"]))
             # the start fades from the edge back to the particle's own c as far again beyond it

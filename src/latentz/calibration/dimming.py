@@ -47,7 +47,10 @@ from collections.abc import Callable
 import numpy as np
 import pandas as pd
 
-__all__ = ["LEVELS", "DIM_COLUMNS", "EDGE_QUANTILE", "dim_fits", "dimmest", "shape_shift"]
+__all__ = [
+    "LEVELS", "DIM_COLUMNS", "EDGE_QUANTILE", "background_ratio", "dim_fits", "dimmest",
+    "shape_shift",
+]  # fmt: skip
 
 #: Background-to-peak ratios c = (b + readnoise²) / A at which the calibration ROIs are refitted:
 #: a single molecule of 10³–10⁴ photons (A ≈ 30–700 per px) over 10–100 photons per px spans
@@ -86,6 +89,13 @@ def dim_fits(
             value = fit.params[:, PARAMS.index(name)]
             out[f"dim{k}_{name}"] = np.where(usable, value, np.nan)
     return out
+
+
+def background_ratio(background: np.ndarray, amplitude: np.ndarray, readnoise: float) -> np.ndarray:
+    """c = (b + readnoise²) / A of fits of background ``background`` and peak ``amplitude``
+    (photoelectrons per pixel); NaN or inf, without a numpy warning, where A is 0 or NaN."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (np.asarray(background, float) + readnoise**2) / np.asarray(amplitude, float)
 
 
 def dimmest(z_nm: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
