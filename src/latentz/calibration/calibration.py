@@ -22,6 +22,7 @@ from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measured_noise
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
+from latentz.calibration.reference import ReferenceField
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
@@ -528,6 +529,16 @@ class Calibration:
         shift = shape_shift(shape_of, trace_at, c_spot, c_own, c_from=c_from)
         return np.where(np.isfinite(shift), shift, 0.0)
 
+    @property
+    def reference_field(self) -> ReferenceField:
+        """A-normalised shapes' reference amplitude across the field, from the kept particles
+        (:class:`~latentz.calibration.reference.ReferenceField`)."""
+        if "reference_field" not in self._cache:
+            rows = self.kept
+            ref = self.local.shapes[self.shape].amplitude_ref[rows]
+            self._cache["reference_field"] = ReferenceField(self.positions[rows], ref)
+        return self._cache["reference_field"]
+
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
         if "tree" not in self._cache:
@@ -558,9 +569,11 @@ class Calibration:
             From ``localize`` / ``fit_rois``: x, y (camera pixels), amplitude, wx, wy, rho, and
             optionally their ``*_err`` columns (then errors are propagated per spot).
         amplitude_reference : {"calibration", "particle"}
-            For A-normalised shapes ("rho_A", "auto_A"): A_{ρ=ρ0} of the nearest calibration
-            particle (emitters as bright as the calibration particles), or of each emitter's own
-            track (the spot with the smallest |ρ| in its ``particle`` group).
+            For A-normalised shapes ("rho_A", "auto_A"): the calibration particles' A_{ρ=ρ0}
+            near the spot (:attr:`reference_field`: emitters as bright as the calibration
+            particles, whose own spread in brightness ``z_err_nm`` then includes), or that of
+            each emitter's own track (the spot with the smallest |ρ| in its ``particle``
+            group).
 
         Returns
         -------
@@ -580,10 +593,14 @@ class Calibration:
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         model = self.local.shapes[shape]
         theta = self.local.theta
-        ref = model.amplitude_ref[p]
+        ref, ref_scatter = model.amplitude_ref[p], 0.0
         if uses_amplitude(shape) and amplitude_reference == "particle":
             check_columns("spots", spots, ("particle",))
             ref = _track_reference(shape, spots, cols, theta)
+        elif uses_amplitude(shape):
+            field = self.reference_field
+            ref = field(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
+            ref_scatter = field.scatter
         s = shape_value(
             shape,
             cols["wx"],
@@ -608,6 +625,9 @@ class Calibration:
             z_err = np.hypot(self.noise_scale * fit_part, model_part)
         else:
             z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
+        if ref_scatter:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ
+            slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
+            z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
         px = self.camera.pixel_size_nm
         out = spots.copy()
         zq = np.where(in_range, z, 0.0)
