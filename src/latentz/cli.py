@@ -185,7 +185,8 @@ def _progress(quiet: bool) -> bool:
     default=None,
     type=click.Choice(["rho", "rho_w", "rho_A", "auto", "auto_A"]),
     help="Shape parameter for z. [default: the one with the best expected sigma_z for "
-    "single molecules; the calibration records why]",
+    "single molecules and for emitters like the calibration particles; the calibration "
+    "records why]",
 )
 @click.option(
     "--roi-size",

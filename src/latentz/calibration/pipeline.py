@@ -104,8 +104,9 @@ def calibrate(
         Camera model (default ``Camera()``); its pixel size converts positions to nm.
     shape : {"rho", "rho_w", "rho_A", "auto", "auto_A"}, optional
         Shape parameter for axial localization (paper eqs. 4–6; "auto" for any astigmatism
-        angle). None picks the one with the best expected σ_z for emitters of 100–10,000
-        photons (:mod:`latentz.calibration.shape_choice`); ``cal.shape_choice`` says why.
+        angle). None picks the one with the best expected σ_z for single molecules and for
+        emitters like the calibration particles (:mod:`latentz.calibration.shape_choice`);
+        ``cal.shape_choice`` says why.
     field_model : {"auto", "zernike", "natural", "curves", "nearest"}
         How models are carried across the field. "auto" (default): the best by leave-one-
         particle-out cross-validation of the whole prediction, never worse than "nearest"

@@ -1,0 +1,67 @@
+"""The shape choice (``calibrate(shape=None)``): for single molecules where any shape can measure
+them, for emitters like the calibration particles where none can; judged against truth."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from latentz.calibration.shape import uses_amplitude
+from latentz.calibration.shape_choice import GUESS_FRACTION, choose
+
+
+def _table(scores: dict[str, tuple[float, float]], guess: float) -> pd.DataFrame:
+    rows = {
+        shape: {"cv_nm": 50.0, "crlb_nm": molecules, "brightness_nm": 0.0, "coverage": 1.0,
+                "score_nm": molecules, "particles_nm": particles, "guess_nm": guess}
+        for shape, (molecules, particles) in scores.items()
+    }  # fmt: skip
+    return pd.DataFrame(rows).T.astype(float).rename_axis("shape")
+
+
+def test_molecules_decide_where_a_shape_measures_them():
+    table = _table({"auto": (120.0, 60.0), "auto_A": (180.0, 25.0)}, guess=330.0)
+    shape, record = choose(table)
+    assert shape == "auto" and "1000-photon emitters" in record["reason"]
+
+
+def test_the_calibration_particles_decide_where_no_shape_measures_molecules():
+    guess = 1700.0
+    table = _table({"auto": (1330.0, 205.0), "rho_A": (1264.0, 240.0)}, guess=guess)
+    assert table["score_nm"].min() >= GUESS_FRACTION * guess
+    shape, record = choose(table)
+    assert shape == "auto" and "like the calibration particles" in record["reason"]
+
+
+@pytest.mark.slow
+def test_the_choice_for_one_micron_beads_localizes_other_beads_best(
+    small_microscope, small_calibration
+):
+    """1 µm beads: no shape measures a 1000-photon emitter, so the choice is for beads; the
+    chosen shape localizes independent beads (other places, sizes of the same batch) in z as
+    well as the best of the candidates, and the A-normalised ones, which carry each bead's own
+    brightness, worse (nearest particle's models: 100 against 71 nm)."""
+    from latentz import simulate as sim
+    from latentz.accuracy import error_table, focal_plane, localize_dataset
+    from latentz.calibration import calibrate_traces
+
+    cal = small_calibration
+    assert "like the calibration particles" in cal.shape_choice["reason"]
+    field = cal.options["field_shape"]
+    test = sim.calibration_dataset(
+        n_particles=30, z_nm=np.linspace(-1000, 1000, 9), n_stage_positions=1,
+        frame_shape=tuple(field), min_spacing_px=40.0,
+        aberrations=sim.AberrationMap.default(seed=2, field_shape=tuple(field)), seed=12,
+    )  # fmt: skip
+    spots = localize_dataset(test, roi_size=cal.roi_size)
+    plane = focal_plane(small_microscope.calibration.truth)
+    rmse = {}
+    for shape in ("rho", "rho_w", "rho_A", "auto", "auto_A"):
+        model = calibrate_traces(cal.traces, camera=cal.camera, shape=shape, roi_size=cal.roi_size,
+                                 field_model="nearest", field_shape=field)  # fmt: skip
+        errors = error_table(model.apply(spots), test, plane, truth="geometric")  # z alike
+        err = errors.loc[errors["in_range"], "err_z_nm"]
+        rmse[shape] = float(np.sqrt(np.mean((err - err.mean()) ** 2)))
+    best = min(rmse.values())
+    assert rmse[cal.shape] <= 1.15 * best, rmse
+    assert not uses_amplitude(cal.shape)
+    assert min(rmse["rho_A"], rmse["auto_A"]) > 1.25 * best, rmse
