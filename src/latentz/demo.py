@@ -241,7 +241,6 @@ def run_demo(
         list(stacks.stacks),
         stacks.z_nm,
         camera=camera,
-        shape="rho_A",
         field_model=size.field_model,
         stage_offsets_px=stacks.origins[:, ::-1],
         roi_size=ROI_PX,
@@ -266,9 +265,9 @@ def run_demo(
     )
     static_truth = gear.truth[gear.truth["frame"] == 0]
     static_frames, _ = sim.render_spots(
-        pd.concat([static_truth.assign(frame=f) for f in range(size.static_frames)]).rename(
-            columns={"z_nm": "z_nm"}
-        )[["frame", "x", "y", "z_nm"]],
+        pd.concat([static_truth.assign(frame=f) for f in range(size.static_frames)])[
+            ["frame", "x", "y", "z_nm", "photons", "diameter_nm"]
+        ],
         frame_shape=gear.frames.shape[1:],
         origin=gear.origin,
         optics=optics,
