@@ -24,3 +24,13 @@ def test_coverage_of_honest_and_of_overconfident_uncertainties():
     # P(|N(0, 16)| <= 1) = 19.7 %
     assert abs(table.loc["z", "within 1σ (%)"] - 19.7) < 1.5
     assert table.loc["z", "RMS error / median σ"] > 3.5
+
+
+def test_the_section_says_why_each_choice_was_made(small_calibration):
+    """Defaults chose the shape and the ROI; the field model was given ("nearest")."""
+    from latentz.quality_report import quality_section
+
+    text = quality_section(small_calibration).text
+    assert small_calibration.shape_choice["reason"] in text
+    assert "ROI: " in text and "chosen from the data: 95 % of the light" in text
+    assert text.count("as requested when calibrating") == 1  # the field model only

@@ -101,6 +101,10 @@ def _crossval_errors(cal: Any) -> pd.DataFrame | None:
 def _why(cal: Any, key: str, default: str) -> str:
     """The reason the calibration recorded for an automatic choice, else ``default``."""
     reason = cal.options.get(f"{key}_reason") or (cal.provenance or {}).get(f"{key}_reason")
+    if key == "shape" and cal.shape_choice:
+        reason = cal.shape_choice["reason"]
+    if key == "field_model" and cal.options.get("field_model") == "auto":
+        reason = "chosen by leave-one-particle-out cross-validation of the whole prediction"
     return str(reason) if reason else default
 
 

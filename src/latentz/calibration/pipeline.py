@@ -263,6 +263,10 @@ def _calibrate_roi(run, roi: int, limit: int) -> Calibration:
         cal, caught = run(roi)
     _say(caught)
     width = widest_spot_px(cal)
+    if np.isfinite(width):
+        cal.options["roi_size_reason"] = (
+            f"chosen from the data: 95 % of the light of the widest kept spot ({width:.2g} px)"
+        )
     if np.isfinite(width) and roi_for_width(width) > limit:
         warn(
             f"The widest kept spot ({width:.2g} px) needs a {roi_for_width(width)} px ROI but "
