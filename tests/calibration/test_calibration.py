@@ -404,3 +404,16 @@ def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
     z[:5] = np.nan
     expected = np.array([np.interp(zk, grid[r], values[r]) for r, zk in zip(rows, z, strict=True)])
     np.testing.assert_allclose(_interp_rows(grid, values, rows, z), expected, rtol=1e-12)
+
+
+def test_a_one_particle_rho_a_calibration_is_its_own_reference():
+    """With a lone particle, its own A at ρ0 normalises every spot: its own images give back
+    its own z axis, with finite errors."""
+    traces, _ = make_traces(1, seed=40)
+    cal = calibrate_traces(traces, camera=CAM, shape="rho_A", field_model="nearest")
+    out = cal.apply(traces_table(traces))
+    inside = out["in_range"].to_numpy()
+    assert inside.mean() > 0.5
+    error = out["z_nm"].to_numpy()[inside] - cal.local.z_nm[0][inside]
+    assert np.sqrt(np.mean(error**2)) < 3 * np.median(out["z_err_nm"].to_numpy()[inside])
+    assert np.isfinite(out.loc[inside, "z_err_nm"]).all()

@@ -52,6 +52,9 @@ def test_held_out_leaves_each_particle_out_and_skips_missing_values():
     assert ReferenceField(xy, changed).held_out()[0] == pytest.approx(held[0])
 
 
-def test_one_particle_is_not_a_reference():
-    with pytest.raises(ValueError, match="two calibration particles with a reference"):
-        ReferenceField(np.zeros((2, 2)), np.array([500.0, np.nan]))
+def test_a_lone_particle_is_its_own_reference_with_an_unknown_scatter():
+    lone = ReferenceField(np.array([[10.0, 20.0], [30.0, 40.0]]), np.array([500.0, np.nan]))
+    assert lone(np.array([0.0, 900.0]), np.array([0.0, 900.0])) == pytest.approx([500.0, 500.0])
+    assert np.isnan(lone.scatter) and np.isnan(lone.held_out()).all()
+    with pytest.raises(ValueError, match="needs a calibration particle with a reference"):
+        ReferenceField(np.zeros((1, 2)), np.array([np.nan]))

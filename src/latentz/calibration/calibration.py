@@ -625,7 +625,7 @@ class Calibration:
             z_err = np.hypot(self.noise_scale * fit_part, model_part)
         else:
             z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
-        if ref_scatter:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ
+        if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
             slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
             z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
         px = self.camera.pixel_size_nm

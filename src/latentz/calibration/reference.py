@@ -9,6 +9,7 @@ nearest particles' A_ref: it follows the field and averages the sizes out.
 An emitter still differs from that mean by as much as the particles differ among themselves.
 That error, in ln A, is the leave-one-out RMS of each particle's ln A_ref about the mean of its
 nearest others (:attr:`ReferenceField.scatter`); since s ∝ A_ref, it moves s by s · scatter.
+A lone particle is its own reference, and that error is then unknown.
 On the demo's simulated microscope (312 particles of 1000 ± 24 nm) the mean took the gear's
 z RMS from 43 nm (the nearest particle's A_ref) to 28 nm, with the same beads.
 """
@@ -42,19 +43,22 @@ class ReferenceField:
         with np.errstate(invalid="ignore", divide="ignore"):
             log_ref = np.log(np.asarray(self.amplitude_ref, dtype=np.float64))
         keep = np.isfinite(log_ref)
-        if np.count_nonzero(keep) < 2:
+        if not keep.any():
             raise ValueError(
-                "An A-normalised shape needs two calibration particles with a reference "
-                "amplitude to apply with amplitude_reference='calibration'; use "
+                "An A-normalised shape needs a calibration particle with a reference amplitude "
+                "to apply with amplitude_reference='calibration'; use "
                 "amplitude_reference='particle' or a shape without A (rho_w, auto)."
             )
         positions = np.asarray(self.positions, dtype=np.float64)[keep]
+        n = positions.shape[0]
         object.__setattr__(self, "_keep", keep)
         object.__setattr__(self, "_log_ref", log_ref[keep])
         object.__setattr__(self, "_tree", cKDTree(positions))
-        object.__setattr__(self, "_k", min(REFERENCE_NEIGHBOURS, positions.shape[0] - 1))
-        _, others = self._tree.query(positions, k=self._k + 1)
-        held_out = np.mean(self._log_ref[others[:, 1:]], axis=1)
+        object.__setattr__(self, "_k", max(min(REFERENCE_NEIGHBOURS, n - 1), 1))
+        held_out = np.full(n, np.nan)  # a lone particle has no others
+        if n > 1:
+            _, others = self._tree.query(positions, k=self._k + 1)
+            held_out = np.mean(self._log_ref[others[:, 1:]], axis=1)
         object.__setattr__(self, "_held_out", held_out)
 
     def __call__(self, x: Any, y: Any) -> np.ndarray:
@@ -74,5 +78,5 @@ class ReferenceField:
     @property
     def scatter(self) -> float:
         """1σ of an emitter's ln A_{ρ=ρ0} about its reference: the RMS of the particles' own
-        ln A_{ρ=ρ0} about their held-out references."""
+        ln A_{ρ=ρ0} about their held-out references; NaN (unknown) for a lone particle."""
         return float(np.sqrt(np.mean((self._log_ref - self._held_out) ** 2)))
