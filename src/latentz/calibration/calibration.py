@@ -539,6 +539,13 @@ class Calibration:
             self._cache["reference_field"] = ReferenceField(self.positions[rows], ref)
         return self._cache["reference_field"]
 
+    def _particle_references(self) -> np.ndarray:
+        """(n,) :attr:`reference_field` at every particle's position (computed once), so that a
+        spot takes its nearest particle's entry instead of a tree query of its own."""
+        if "particle_references" not in self._cache:
+            self._cache["particle_references"] = self.reference_field(*self.positions.T)
+        return self._cache["particle_references"]
+
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
         if "tree" not in self._cache:
@@ -570,10 +577,10 @@ class Calibration:
             optionally their ``*_err`` columns (then errors are propagated per spot).
         amplitude_reference : {"calibration", "particle"}
             For A-normalised shapes ("rho_A", "auto_A"): the calibration particles' A_{ρ=ρ0}
-            near the spot (:attr:`reference_field`: emitters as bright as the calibration
-            particles, whose own spread in brightness ``z_err_nm`` then includes), or that of
-            each emitter's own track (the spot with the smallest |ρ| in its ``particle``
-            group).
+            about the spot's nearest particle (:attr:`reference_field`: emitters as bright as
+            the calibration particles, whose own spread in brightness ``z_err_nm`` then
+            includes), or that of each emitter's own track (the spot with the smallest |ρ| in
+            its ``particle`` group).
 
         Returns
         -------
@@ -597,10 +604,8 @@ class Calibration:
         if uses_amplitude(shape) and amplitude_reference == "particle":
             check_columns("spots", spots, ("particle",))
             ref = _track_reference(shape, spots, cols, theta)
-        elif uses_amplitude(shape):
-            field = self.reference_field
-            ref = field(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
-            ref_scatter = field.scatter
+        elif uses_amplitude(shape):  # the reference about the spot's nearest particle
+            ref, ref_scatter = self._particle_references()[p], self.reference_field.scatter
         s = shape_value(
             shape,
             cols["wx"],
