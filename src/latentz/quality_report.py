@@ -99,13 +99,15 @@ def _crossval_errors(cal: Any) -> pd.DataFrame | None:
 
 
 def _why(cal: Any, key: str, default: str) -> str:
-    """The reason the calibration recorded for an automatic choice, else ``default``."""
-    reason = cal.options.get(f"{key}_reason") or (cal.provenance or {}).get(f"{key}_reason")
-    if key == "shape" and cal.shape_choice:
-        reason = cal.shape_choice["reason"]
-    if key == "field_model" and cal.options.get("field_model") == "auto":
-        reason = "chosen by leave-one-particle-out cross-validation of the whole prediction"
-    return str(reason) if reason else default
+    """Why ``calibrate`` chose the shape, ``roi_size`` or field model, else ``default``."""
+    reasons = {
+        "shape": (cal.shape_choice or {}).get("reason"),
+        "roi_size": cal.options.get("roi_size_reason"),
+        "field_model": "chosen by leave-one-particle-out cross-validation of the whole prediction"
+        if cal.options.get("field_model") == "auto"
+        else None,
+    }
+    return str(reasons[key] or default)
 
 
 def quality_section(

@@ -16,7 +16,6 @@ z RMS from 43 nm (the nearest particle's A_ref) to 28 nm, with the same beads.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -28,7 +27,6 @@ __all__ = ["REFERENCE_NEIGHBOURS", "ReferenceField"]
 REFERENCE_NEIGHBOURS = 16
 
 
-@dataclass(frozen=True)
 class ReferenceField:
     """A_{ρ=ρ0} across the field from the calibration particles' own values.
 
@@ -36,30 +34,25 @@ class ReferenceField:
     (photons per px at the peak); particles without a finite, positive value are left out.
     """
 
-    positions: np.ndarray
-    amplitude_ref: np.ndarray
-
-    def __post_init__(self) -> None:
+    def __init__(self, positions: np.ndarray, amplitude_ref: np.ndarray) -> None:
         with np.errstate(invalid="ignore", divide="ignore"):
-            log_ref = np.log(np.asarray(self.amplitude_ref, dtype=np.float64))
-        keep = np.isfinite(log_ref)
-        if not keep.any():
+            log_ref = np.log(np.asarray(amplitude_ref, dtype=np.float64))
+        self._keep = np.isfinite(log_ref)
+        if not self._keep.any():
             raise ValueError(
                 "An A-normalised shape needs a calibration particle with a reference amplitude "
                 "to apply with amplitude_reference='calibration'; use "
                 "amplitude_reference='particle' or a shape without A (rho_w, auto)."
             )
-        positions = np.asarray(self.positions, dtype=np.float64)[keep]
-        n = positions.shape[0]
-        object.__setattr__(self, "_keep", keep)
-        object.__setattr__(self, "_log_ref", log_ref[keep])
-        object.__setattr__(self, "_tree", cKDTree(positions))
-        object.__setattr__(self, "_k", max(min(REFERENCE_NEIGHBOURS, n - 1), 1))
-        held_out = np.full(n, np.nan)  # a lone particle has no others
+        points = np.asarray(positions, dtype=np.float64)[self._keep]
+        n = points.shape[0]
+        self._log_ref = log_ref[self._keep]
+        self._tree = cKDTree(points)
+        self._k = max(min(REFERENCE_NEIGHBOURS, n - 1), 1)
+        self._held_out = np.full(n, np.nan)  # a lone particle has no others
         if n > 1:
-            _, others = self._tree.query(positions, k=self._k + 1)
-            held_out = np.mean(self._log_ref[others[:, 1:]], axis=1)
-        object.__setattr__(self, "_held_out", held_out)
+            _, others = self._tree.query(points, k=self._k + 1)
+            self._held_out = np.mean(self._log_ref[others[:, 1:]], axis=1)
 
     def __call__(self, x: Any, y: Any) -> np.ndarray:
         """The reference amplitude at camera positions (x, y) (px): the geometric mean of the
