@@ -9,27 +9,39 @@ from latentz.calibration.shape import uses_amplitude
 from latentz.calibration.shape_choice import GUESS_FRACTION, choose
 
 
-def _table(scores: dict[str, tuple[float, float]], guess: float) -> pd.DataFrame:
+def _table(scores: dict[str, tuple[float, float, float]], guess: float) -> pd.DataFrame:
+    """Rows of (single-molecule score, its Cramér–Rao part, the particles' error) per shape."""
     rows = {
-        shape: {"cv_nm": 50.0, "crlb_nm": molecules, "brightness_nm": 0.0, "coverage": 1.0,
-                "score_nm": molecules, "particles_nm": particles, "guess_nm": guess}
-        for shape, (molecules, particles) in scores.items()
+        shape: {"cv_nm": 50.0, "crlb_nm": limit, "brightness_nm": 0.0, "coverage": 1.0,
+                "score_nm": molecules, "photon_limit_nm": limit, "particles_nm": particles,
+                "guess_nm": guess}
+        for shape, (molecules, limit, particles) in scores.items()
     }  # fmt: skip
     return pd.DataFrame(rows).T.astype(float).rename_axis("shape")
 
 
 def test_molecules_decide_where_a_shape_measures_them():
-    table = _table({"auto": (120.0, 60.0), "auto_A": (180.0, 25.0)}, guess=330.0)
+    table = _table({"auto": (120.0, 110.0, 60.0), "auto_A": (180.0, 50.0, 25.0)}, guess=330.0)
     shape, record = choose(table)
     assert shape == "auto" and "1000-photon emitters" in record["reason"]
 
 
 def test_the_calibration_particles_decide_where_no_shape_measures_molecules():
-    guess = 1700.0
-    table = _table({"auto": (1330.0, 205.0), "rho_A": (1264.0, 240.0)}, guess=guess)
-    assert table["score_nm"].min() >= GUESS_FRACTION * guess
+    """The demo's stacks: 1 µm beads, Cramér–Rao bounds of about a micron."""
+    guess = 1726.0
+    table = _table({"auto": (1329.0, 1300.0, 205.0), "rho_A": (1264.0, 987.0, 240.0)}, guess=guess)
+    assert table["photon_limit_nm"].min() >= GUESS_FRACTION * guess
     shape, record = choose(table)
     assert shape == "auto" and "like the calibration particles" in record["reason"]
+
+
+def test_a_poor_cross_validation_alone_does_not_make_molecules_unmeasurable():
+    """Three SMLM 2016 beads far apart: every score near the guess through the cross-validated
+    error (300 nm), while the photon limit measures molecules (auto 120 nm): they decide."""
+    table = _table({"auto": (263.5, 119.5, 253.7), "auto_A": (275.3, 50.0, 251.9)}, guess=304.0)
+    assert table["score_nm"].min() >= GUESS_FRACTION * 304.0
+    shape, record = choose(table)
+    assert shape == "auto" and "1000-photon emitters" in record["reason"]
 
 
 @pytest.mark.slow
