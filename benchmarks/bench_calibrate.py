@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 from _rounds import machine, spread, time_rounds, write_results
 
-from latentz.calibration.pipeline import calibrate
+from latentz.calibration.workflow import calibrate
 from latentz.camera import Camera
 from latentz.fit import render_rois
 

@@ -29,7 +29,12 @@ ROI = 15
 def simulator_case(diameter_sd_nm: float) -> tuple:
     """(calibration, apply output, error table) of the coverage test's simulator case."""
     from latentz import simulate as sim
-    from latentz.accuracy import error_table, focal_plane, focus_positions, localize_dataset
+    from latentz.validation.accuracy import (
+        error_table,
+        focal_plane,
+        focus_positions,
+        localize_dataset,
+    )
 
     field = (384, 384)
     common = {"n_stage_positions": 1, "frame_shape": field, "min_spacing_px": 40.0,

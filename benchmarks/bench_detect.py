@@ -35,7 +35,7 @@ def main() -> None:
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_localize import spots_movie
 
-    from latentz.detect import detect_arrays
+    from latentz.detect.api import detect_arrays
 
     old = old_detect()
     frames = spots_movie(4, 30).astype(np.float64)

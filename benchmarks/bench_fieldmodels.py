@@ -20,8 +20,8 @@ import warnings
 import numpy as np
 from metpy.interpolate import natural_neighbor_to_points
 
+from latentz._shared.zernike import zernike_design
 from latentz.calibration.fieldmodels import FieldModel, field_errors
-from latentz.zernike import zernike_design
 
 SHAPE = (512, 512)
 

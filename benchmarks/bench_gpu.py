@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from latentz._shared.engine import cuda_status
 from latentz.camera import Camera
-from latentz.engine import cuda_status
 from latentz.fit import amplitude_of, crlb, fit_arrays, render_rois
 
 PAPER_HZ = 90.9

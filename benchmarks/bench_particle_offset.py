@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz.calibration.pipeline import calibrate_traces
+from latentz.calibration.workflow import calibrate_traces
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests" / "calibration"))

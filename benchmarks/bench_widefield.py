@@ -1,6 +1,7 @@
 """Benchmark: widefield accuracy against simulated truth, the iterated correction, apply's speed.
 
-Runs :func:`latentz.accuracy.widefield_study` (500 calibration particles over the 2048² field,
+Runs :func:`latentz.validation.accuracy.widefield_study` (500 calibration particles over the 2048²
+field,
 320 independent test particles within ±2 µm; see its docstring) and reports, for each field
 model, the RMSE after one global offset against three truths: the apparent position at best focus
 (the paper's), the geometric position, and the geometric position after removing one affine map
@@ -25,9 +26,9 @@ import numpy as np
 import pandas as pd
 from _rounds import machine, spread, time_rounds, write_results
 
-from latentz.accuracy import error_figure, rmse, score, widefield_study
 from latentz.calibration import calibrate_traces
-from latentz.quality_report import coverage_table
+from latentz.report.calibration_quality import coverage_table
+from latentz.validation.accuracy import error_figure, rmse, score, widefield_study
 
 OUT = Path(__file__).resolve().parent / "results"
 Z_LIMIT_NM = 2000.0

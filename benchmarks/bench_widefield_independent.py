@@ -36,7 +36,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz.calibration import calibrate, calibrate_traces
-from latentz.calibration.calibration import _track_reference
+from latentz.calibration.result import _track_reference
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.validation import SIZES, make_data
 from latentz.validation.datasets import emitter_images

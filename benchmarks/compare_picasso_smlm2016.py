@@ -246,8 +246,8 @@ def _picasso_out(zl):
 
 
 def run_latentz(stack, truth, camera, z_nm, *, box):
-    from latentz.calibration.pipeline import calibrate_traces
     from latentz.calibration.traces import extract_traces
+    from latentz.calibration.workflow import calibrate_traces
     from latentz.localization import localize
 
     t0 = time.perf_counter()

@@ -7,7 +7,7 @@ import textwrap
 import pandas as pd
 import pytest
 
-from latentz.chunked import chunk_dir, run_chunked
+from latentz.cli.chunked import chunk_dir, run_chunked
 from latentz.io import read_table
 
 
@@ -72,7 +72,7 @@ def test_kill_9_leaves_no_output_and_resume_finishes(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys, time, pandas as pd
-        from latentz.chunked import run_chunked
+        from latentz.cli.chunked import run_chunked
         def process(start, stop):
             if start >= 30 and sys.argv[1] == "slow":
                 print("chunk", start, flush=True); time.sleep(60)

@@ -179,7 +179,7 @@ def test_pipeline_localize_track_report(run_dir, calibrated):
         folder / "locs.parquet",
     )
     assert result.exit_code == 0, result.output
-    from latentz.readout import frame_rate_hz
+    from latentz.camera.readout import frame_rate_hz
 
     rows = gear.frames.shape[1]  # the acquisition rate for the movie's rows at 1 ms
     assert f"({frame_rate_hz(1.0, rows):.1f} Hz: 1 ms exposure, {rows} rows)" in result.output
@@ -319,7 +319,7 @@ def test_distributed_scheduler_gives_the_same_table(run_dir, calibrated, tmp_pat
 
 def test_warnings_reach_the_console_as_one_line_without_source():
     from latentz._shared.sanity import LatentzWarning
-    from latentz.cli import _warning_line
+    from latentz.cli.main import _warning_line
 
     message = LatentzWarning("3 spot widths are far outside\nmore")
     line = _warning_line(message, LatentzWarning, "/a/b.py", 7)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from latentz.cli_options import camera_from_options, z_positions
+from latentz.cli.options import camera_from_options, z_positions
 
 
 def test_camera_from_file_and_overrides(tmp_path):
@@ -68,7 +68,7 @@ def test_z_file_length_must_match(tmp_path):
 
 
 def test_stage_offsets(tmp_path):
-    from latentz.cli_options import stage_offsets_px
+    from latentz.cli.options import stage_offsets_px
 
     (tmp_path / "o.csv").write_text("# x,y\n0,0\n512,0\n")
     np.testing.assert_array_equal(stage_offsets_px(tmp_path / "o.csv", 2), [[0, 0], [512, 0]])

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 from movie_truth import emitter_movie, match
 
-from latentz.detect import (
+from latentz.detect.api import (
     DEFAULT_THRESHOLD,
     band_noise,
     band_pass,

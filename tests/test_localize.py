@@ -169,7 +169,7 @@ def test_each_spot_is_fitted_in_a_roi_centred_on_its_own_position():
     can sit a pixel away from its centre; like calibration, localize must fit each spot in the
     ROI centred on the rounded fitted position, or the fitted centre and widths (hence z and
     the lateral correction) depend on where detection happened to put the ROI."""
-    from latentz.detect import detect
+    from latentz.detect.api import detect
     from latentz.fit import fit_rois
     from latentz.simulate import render_spots
 

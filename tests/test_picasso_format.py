@@ -4,7 +4,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from latentz.picasso_format import PICASSO_FIELDS, write_picasso
+from latentz.io.picasso import PICASSO_FIELDS, write_picasso
 
 
 def _locs(n=5):

@@ -3,7 +3,7 @@
 import numpy as np
 import pandas as pd
 
-from latentz.quality_report import coverage_table
+from latentz.report.calibration_quality import coverage_table
 
 
 def test_coverage_of_honest_and_of_overconfident_uncertainties():
@@ -28,7 +28,7 @@ def test_coverage_of_honest_and_of_overconfident_uncertainties():
 
 def test_the_section_says_why_each_choice_was_made(small_calibration):
     """Defaults chose the shape and the ROI; the field model was given ("nearest")."""
-    from latentz.quality_report import quality_section
+    from latentz.report.calibration_quality import quality_section
 
     text = quality_section(small_calibration).text
     assert small_calibration.shape_choice["reason"] in text

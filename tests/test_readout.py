@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import latentz as lz
-from latentz.readout import constellation_precision_nm, frame_rate_hz, readout_figure
+from latentz.camera.readout import constellation_precision_nm, frame_rate_hz, readout_figure
 
 
 def test_the_papers_rate_at_1_ms_and_the_full_sensor():

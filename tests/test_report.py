@@ -11,7 +11,8 @@ import pytest  # noqa: E402
 from browser import chromium, images_loaded  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from latentz.report import Section, figure_png, write_report  # noqa: E402
+from latentz._shared.figures import figure_png
+from latentz.report import Section, write_report  # noqa: E402
 
 
 def _figure():

@@ -19,7 +19,7 @@ def test_smlm_beads_report_has_no_empty_panel(tmp_path):
     from latentz.calibration import calibrate
     from latentz.calibration.figures import figure2, figure3
     from latentz.camera import Camera
-    from latentz.pipeline import report_run
+    from latentz.cli.steps import report_run
 
     camera = Camera(offset=100.0, gain=0.16, readnoise=1.0, pixel_size_nm=100.0)
     stack = tifffile.imread(path)

@@ -8,8 +8,8 @@ from scipy.spatial import cKDTree
 
 from latentz.camera import Camera
 from latentz.localization import LOCALIZE_COLUMNS, localize
+from latentz.localization.follow import predict, rigid_step
 from latentz.simulate import gear_movie, render_spots
-from latentz.tracking import predict, rigid_step
 
 
 @pytest.fixture(scope="module")

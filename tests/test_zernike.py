@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.special import eval_jacobi
 
-from latentz.zernike import (
+from latentz._shared.zernike import (
     field_to_disk,
     fit_zernike,
     lstsq_operator,

@@ -23,7 +23,7 @@ _EXPORTS = {
     "calibrate": "latentz.calibration",
     "drift": "latentz.motion",
     "fit_rois": "latentz.fit",
-    "frame_rate_hz": "latentz.readout",
+    "frame_rate_hz": "latentz.camera",
     "icp": "latentz.motion",
     "link": "latentz.motion",
     "localize": "latentz.localization",

@@ -6,8 +6,8 @@ import pandas as pd
 import pytest
 from calib_synthetic import make_traces
 
-from latentz.calibration.pipeline import calibrate, calibrate_traces
 from latentz.calibration.traces import traces_table
+from latentz.calibration.workflow import calibrate, calibrate_traces
 from latentz.camera import Camera
 
 CAM = Camera(offset=0.0, gain=1.0, readnoise=0.0, pixel_size_nm=100.0)
@@ -264,7 +264,7 @@ def test_images_with_decreasing_z_give_the_same_calibration():
 
 
 def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
-    from latentz.calibration.calibration import Calibration
+    from latentz.calibration.result import Calibration
 
     cal, traces, _ = calibrated
     path = tmp_path / "cal.h5"
@@ -282,9 +282,9 @@ def test_hdf5_round_trip_is_exact(calibrated, tmp_path):
     spots = traces_table(traces.subset([1, 2]))
     pd.testing.assert_frame_equal(cal.apply(spots), back.apply(spots))
     with pytest.raises(ValueError, match="format"):
-        from latentz.calibration._state import from_arrays
+        from latentz.calibration.storage import from_arrays
 
-        from_arrays(arrays, {**attrs, "format": "other"})
+        from_arrays(arrays, {**attrs, "format": "other"}, factory=type(cal))
 
 
 @pytest.fixture(scope="module")
@@ -299,7 +299,7 @@ def zernike_file(calibrated, tmp_path_factory):
 def test_widefield_models_are_stored_and_apply_bit_identically(zernike_file):
     import h5py
 
-    from latentz.calibration.calibration import Calibration
+    from latentz.calibration.result import Calibration
 
     wide, traces, path = zernike_file
     with h5py.File(path, "r") as handle:
@@ -324,7 +324,7 @@ def test_a_format_1_file_rebuilds_its_widefield_models(zernike_file, tmp_path):
 
     import h5py
 
-    from latentz.calibration.calibration import Calibration
+    from latentz.calibration.result import Calibration
 
     wide, traces, path = zernike_file
     old = tmp_path / "old.h5"
@@ -345,7 +345,7 @@ def test_a_missing_widefield_dataset_is_a_damaged_file(zernike_file, tmp_path, d
 
     import h5py
 
-    from latentz.calibration.calibration import Calibration
+    from latentz.calibration.result import Calibration
 
     _, _, path = zernike_file
     bad = tmp_path / "bad.h5"
@@ -393,7 +393,7 @@ def test_a_tiff_path_with_a_single_bead_and_explicit_position(tmp_path):
 
 
 def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
-    from latentz.calibration.calibration import _interp_rows
+    from latentz.calibration.result import _interp_rows
 
     rng = np.random.default_rng(5)
     planes = np.linspace(-3000.0, 3000.0, 61)

@@ -5,7 +5,7 @@ import pandas as pd
 from calib_synthetic import make_traces
 
 from latentz.calibration.culling import cull, neighbour_offsets, robust_z
-from latentz.calibration.pipeline import calibrate_traces
+from latentz.calibration.workflow import calibrate_traces
 from latentz.camera import Camera
 
 

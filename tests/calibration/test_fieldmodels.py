@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from metpy.interpolate import natural_neighbor_to_points
 
+from latentz._shared.zernike import zernike_design
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS, FieldModel, field_errors
-from latentz.zernike import zernike_design
 
 SHAPE = (96, 128)  # (H, W) pixels
 

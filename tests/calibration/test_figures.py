@@ -5,7 +5,7 @@ import pytest
 from calib_synthetic import make_traces
 
 from latentz.calibration.figures import figure2, figure3, figure_focus, interpercentile
-from latentz.calibration.pipeline import calibrate_traces
+from latentz.calibration.workflow import calibrate_traces
 from latentz.camera import Camera
 
 

@@ -15,8 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from latentz.calibration.pipeline import calibrate, calibrate_traces
 from latentz.calibration.traces import extract_traces, traces_table
+from latentz.calibration.workflow import calibrate, calibrate_traces
 from latentz.camera import Camera
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"

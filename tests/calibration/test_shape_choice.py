@@ -53,8 +53,8 @@ def test_the_choice_for_one_micron_beads_localizes_other_beads_best(
     well as the best of the candidates, and the A-normalised ones, which carry each bead's own
     brightness, worse (nearest particle's models: 100 against 71 nm)."""
     from latentz import simulate as sim
-    from latentz.accuracy import error_table, focal_plane, localize_dataset
     from latentz.calibration import calibrate_traces
+    from latentz.validation.accuracy import error_table, focal_plane, localize_dataset
 
     cal = small_calibration
     assert "like the calibration particles" in cal.shape_choice["reason"]

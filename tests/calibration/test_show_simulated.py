@@ -16,9 +16,9 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from latentz.calibration.pipeline import calibrate
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import extract_traces, traces_table
+from latentz.calibration.workflow import calibrate
 from latentz.simulate.aberrations import AberrationMap
 from latentz.simulate.datasets import calibration_dataset, render_spots
 
@@ -251,7 +251,7 @@ def independent_emitters(ds, cal, *, diameter_nm, seed, photons=0.3 * 5e5, noise
 def test_independent_emitters_are_localized_within_their_uncertainty(sim, diameter_nm):
     """Emitters independent of the calibration particles (other positions, 0.3x the
     brightness) localized with the intensity-independent ρ_w. Point emitters: the next test."""
-    from latentz.calibration.pipeline import calibrate_traces
+    from latentz.calibration.workflow import calibrate_traces
 
     ds, cal, _, _ = sim
     rho_w = calibrate_traces(cal.traces, camera=cal.camera, shape="rho_w", field_model="nearest")
@@ -280,8 +280,8 @@ def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
     every point emitter inconsistent with the calibration curves, one warning naming emitters
     smaller than the calibration particles, nothing good; while emitters like the calibration
     particles (1 µm, at other places and brightness) stay consistent."""
-    from latentz.calibration.pipeline import calibrate_traces
-    from latentz.quality import CHI2_LIMIT, assess, check_calibration_fits
+    from latentz.calibration.workflow import calibrate_traces
+    from latentz.localization.quality import CHI2_LIMIT, assess, check_calibration_fits
 
     ds, cal, _, _ = sim
     rho_w = calibrate_traces(cal.traces, camera=cal.camera, shape="rho_w", field_model="nearest")
@@ -318,7 +318,7 @@ def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
 
 
 def test_auto_shapes_on_the_pi_over_4_microscope(sim):
-    from latentz.calibration.pipeline import calibrate_traces
+    from latentz.calibration.workflow import calibrate_traces
 
     _, cal, _, _ = sim
     kept = ~cal.culled

@@ -1,6 +1,7 @@
 """Issue 5's Show: widefield calibration against simulated truth, anywhere in the field.
 
-One study (module fixture, :func:`latentz.accuracy.widefield_study`): 500 calibration particles
+One study (module fixture, :func:`latentz.validation.accuracy.widefield_study`): 500 calibration
+particles
 of 1 µm at 5e5 photons on a substrate tilted by 2 mrad, 16 stage positions over the 2048² field,
 ±3 µm in 50 nm steps, the simulator's default field-dependent aberrations; 320 independent test
 particles at 17 piezo positions within ±2 µm, detected and fitted by ``localize`` and localized
@@ -12,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from latentz.accuracy import rmse, widefield_study
 from latentz.calibration.fieldmodels import FieldModel
+from latentz.validation.accuracy import rmse, widefield_study
 
 pytestmark = pytest.mark.slow
 Z_LIMIT_NM = 2000.0

@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 
-from latentz import engine
+from latentz._shared import engine
 
 
 @pytest.fixture

@@ -5,9 +5,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from latentz.cli.steps import track_tables
 from latentz.motion.linking import link
 from latentz.motion.rigid import resolve_by_icp, rigid_motion
-from latentz.pipeline import track_tables
 from latentz.simulate.gear_motion import gear_trajectory
 
 SLIP_FRAME = 6

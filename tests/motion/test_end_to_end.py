@@ -6,9 +6,9 @@ import numpy as np
 import pandas as pd
 from scipy.stats import norm
 
+from latentz.cli.steps import track_tables
 from latentz.localization import localize
 from latentz.motion import motion_uncertainty
-from latentz.pipeline import track_tables
 
 DOF = ["gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm"]
 

@@ -7,8 +7,8 @@ import pytest
 from click.testing import CliRunner
 
 from latentz.cli import main
+from latentz.cli.steps import track_tables
 from latentz.io import read_table, write_table
-from latentz.pipeline import track_tables
 from latentz.simulate.gear_motion import gear_trajectory
 
 DRIFT_NM = np.array([3.0, -2.0, 10.0])  # per frame, steady

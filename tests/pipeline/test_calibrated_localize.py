@@ -7,7 +7,7 @@ import pytest
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
-from latentz.quality import QUALITY_COLUMNS
+from latentz.localization.quality import QUALITY_COLUMNS
 
 
 def test_one_call_equals_localize_then_apply_with_the_calibrations_settings(

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from latentz.camera_source import (
+from latentz.camera.source import (
     camera_for_stacks,
     estimate_gain,
     estimate_offset,

@@ -1,4 +1,5 @@
-"""`latentz.quality`: one verdict per spot. Duplicates and unresolved pairs on tables whose truth
+"""`latentz.localization.quality`: one verdict per spot. Duplicates and unresolved pairs on tables
+whose truth
 is built in; consistency with the calibration on the real fit3Dcspline bead (its own odd-plane
 calibration fits its even planes; the SMLM 2016 calibration, from another microscope, does not,
 as it is and rotated by 45°)."""
@@ -13,7 +14,7 @@ from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, smlm_beads
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
-from latentz.quality import assess, good_rows, summary
+from latentz.localization.quality import assess, good_rows, summary
 
 
 def _table(points, frame=0, error=0.05, converged=True):

@@ -20,8 +20,8 @@ from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, need, smlm_beads
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
-from latentz.calibration.pipeline import NOISE_WARNING_SCALE
 from latentz.calibration.roi import roi_for_width, widest_spot_px
+from latentz.calibration.workflow import NOISE_WARNING_SCALE
 
 pytestmark = pytest.mark.realdata
 
@@ -81,8 +81,8 @@ def test_fit3d_crop_shrinks_the_roi_with_one_line():
 def test_shape_choice_is_robust_to_emitters_dimmer_than_the_beads():
     """auto_A has the better Cramér–Rao bound on the beads, but divides by A / A_ref: beads 1-5
     calibrate, bead 0's images at half their amplitude play an emitter of unknown brightness."""
-    from latentz.calibration.pipeline import calibrate_traces
     from latentz.calibration.traces import traces_table
+    from latentz.calibration.workflow import calibrate_traces
 
     stack, z = smlm_beads()
     camera = lz.Camera(**SMLM_CAMERA)

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from latentz.detect import detect
+from latentz.detect.api import detect
 from latentz.localization import localize
 
 N_FRAMES, SHAPE, N_SPOTS = (

@@ -9,8 +9,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from latentz._shared.zernike import noll_to_nm, zernike_design
 from latentz.motion import rigid_motion
-from latentz.zernike import noll_to_nm, zernike_design
 
 
 def moving_tracks(seed, n_particles, n_frames):

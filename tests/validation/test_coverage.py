@@ -50,7 +50,12 @@ def validation_errors():
 @pytest.fixture(scope="module")
 def simulator_errors():
     from latentz import simulate as sim
-    from latentz.accuracy import error_table, focal_plane, focus_positions, localize_dataset
+    from latentz.validation.accuracy import (
+        error_table,
+        focal_plane,
+        focus_positions,
+        localize_dataset,
+    )
 
     field = (384, 384)
     common = {

@@ -97,3 +97,10 @@ def check_columns(name: str, table: Any, columns: Iterable[str]) -> None:
     missing = [c for c in columns if c not in table.columns]
     if missing:
         raise ValueError(f"`{name}` is missing column(s) {', '.join(missing)}.")
+
+
+def check_shape2(name: str, value: Any) -> tuple[int, int]:
+    """Return ``value`` as (rows, columns) of positive ints, or raise naming ``name``."""
+    if not isinstance(value, tuple | list) or len(value) != 2:
+        raise ValueError(f"Expected `{name}` to be (rows, columns), got {value!r}.")
+    return tuple(check_int(name, v, minimum=1) for v in value)  # type: ignore[return-value]

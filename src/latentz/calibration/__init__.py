@@ -6,15 +6,15 @@ field models and the aperture-array magnification live beside them.
 """
 
 from latentz.calibration.apertures import ApertureLattice
-from latentz.calibration.calibration import FIELD_MODELS, Calibration
 from latentz.calibration.fieldmodels import FieldModel, field_errors
 from latentz.calibration.figures import figure2, figure3, figure_focus, figure_shape_zero
 from latentz.calibration.local import LocalOptions
-from latentz.calibration.pipeline import calibrate, calibrate_traces
 from latentz.calibration.polymodel import PolyModel
+from latentz.calibration.result import FIELD_MODELS, Calibration
 from latentz.calibration.shape import SHAPES, astigmatism_angle, shape_value
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces, extract_traces, find_particles
+from latentz.calibration.workflow import calibrate, calibrate_traces
 
 __all__ = [
     "FIELD_MODELS",

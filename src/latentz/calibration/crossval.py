@@ -31,12 +31,15 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 from scipy.signal import savgol_filter
 from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS", "crossval",
            "choose_field_model", "crossval_summary", "emitter_sigma_z", "predict",
@@ -57,13 +60,13 @@ MIN_FIELD_PARTICLES = 12
 TYPICAL_PHOTONS = 1e4
 
 
-def _subset(cal: Any, keep: np.ndarray, kind: str) -> Any:
+def _subset(cal: Calibration, keep: np.ndarray, kind: str) -> Any:
     """The calibration restricted to the particles ``keep`` (bool, n) with field model ``kind``."""
     options = {**cal.options, "field_model": kind}
     return replace(cal, culled=cal.culled | ~keep, options=options, _cache={})
 
 
-def predict(cal: Any, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tuple:
+def predict(cal: Calibration, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tuple:
     """z (nm), Δx', Δy' (px) and in_range for shape values ``s`` at (x, y) with ``cal``'s field
     model, as :meth:`Calibration.apply` computes them."""
     wide = cal.widefield
@@ -82,7 +85,7 @@ def predict(cal: Any, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tupl
     return z, cal.local.dx[p](zq), cal.local.dy[p](zq), ok
 
 
-def _held_out_planes(cal: Any, particles: np.ndarray) -> pd.DataFrame:
+def _held_out_planes(cal: Calibration, particles: np.ndarray) -> pd.DataFrame:
     """Every plane of each particle's monotonic range whose measured shape value its own inverse
     model covers (noise takes the end planes' values past it): its z, that s (a local cubic over
     :data:`_SMOOTH_PLANES` planes, where the particle has a value at every plane) and
@@ -114,7 +117,7 @@ def _held_out_planes(cal: Any, particles: np.ndarray) -> pd.DataFrame:
 
 
 def crossval(
-    cal: Any,
+    cal: Calibration,
     kinds: tuple[str, ...] = ("nearest", "natural", "curves", "zernike"),
     *,
     n_groups: int = 16,
@@ -176,7 +179,9 @@ def crossval(
     return pd.concat(parts, ignore_index=True)
 
 
-def emitter_sigma_z(cal: Any, table: pd.DataFrame, photons: float = TYPICAL_PHOTONS) -> np.ndarray:
+def emitter_sigma_z(
+    cal: Calibration, table: pd.DataFrame, photons: float = TYPICAL_PHOTONS
+) -> np.ndarray:
     """σ_z (nm) of an emitter of ``photons`` photons imaged like each row's held-out particle at
     that plane (:func:`~latentz.calibration.precision.crlb_sigma_z`); NaN where unknown."""
     from latentz.calibration.precision import crlb_sigma_z
@@ -230,7 +235,7 @@ def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
     return str(eligible[rank].idxmin())
 
 
-def resolve_auto(cal: Any) -> str:
+def resolve_auto(cal: Calibration) -> str:
     """``field_model="auto"``: the model :func:`choose_field_model` picks from ``cal.crossval``;
     "nearest", with a warning, below :data:`MIN_FIELD_PARTICLES` kept particles."""
     if cal.kept.size < MIN_FIELD_PARTICLES:

@@ -10,15 +10,18 @@ with the excess kurtosis of each error histogram, is the table :func:`evaluate` 
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 
-from latentz.calibration.calibration import FIELD_MODELS, Calibration
+from latentz._shared.figures import mark_empty
+from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS as FIELD_MODELS
 from latentz.calibration.fieldmodels import FieldModel, field_errors
 from latentz.calibration.widefield import MIN_PARTICLES, covered_span
-from latentz.report import mark_empty
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = ["evaluate", "evaluate_figures", "crossval_report"]
 

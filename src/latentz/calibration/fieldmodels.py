@@ -6,7 +6,8 @@ lateral position. The paper compares three models, all behind one interface here
 
 ``"zernike"``
     Least-squares fit of leading Noll Zernike polynomials (at most ``n_terms``, the paper's 400)
-    on the disk that circumscribes the field (:mod:`latentz.zernike`); by default the number of
+    on the disk that circumscribes the field (:mod:`latentz._shared.zernike`); by default the
+    number of
     terms minimises the leave-one-out error. The paper's error estimate is the fit residual at
     each particle; the leave-one-out residual is available too, and is the honest one.
 ``"natural"``
@@ -45,7 +46,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from scipy.stats import kurtosis
 
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
-from latentz.zernike import (
+from latentz._shared.zernike import (
     field_to_disk,
     press_terms,
     truncated_lstsq_operator,

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
+from latentz._shared.figures import mark_empty, save_figure
 from latentz._shared.validate import check_int
-from latentz.calibration.calibration import PAPER_SHAPES, Calibration
-from latentz.report import mark_empty, save_figure
+from latentz.calibration.result import PAPER_SHAPES, Calibration
 
 __all__ = ["figure2", "figure3", "figure_focus", "figure_shape_zero"]
 

@@ -273,7 +273,7 @@ def extract_traces(
     progress : bool
         Show a progress bar over the stacks.
     device : {"auto", "cpu", "cuda"}
-        Where the fits run (:func:`latentz.engine.resolve_device`).
+        Where the fits run (:func:`latentz._shared.engine.resolve_device`).
     """
     from tqdm.auto import tqdm
 

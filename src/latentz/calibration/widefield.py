@@ -28,16 +28,19 @@ the particle spacing, where a weighted mean of neighbours flattens them (docs/ac
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from latentz._shared.validate import check_array, check_int, check_positive
+from latentz._shared.zernike import zernike_design
 from latentz.calibration.fieldmodels import FieldModel, field_weights
 from latentz.calibration.polymodel import PolyModel
-from latentz.zernike import zernike_design
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = ["CurveModel", "WidefieldModel", "covered_span"]
 
@@ -179,7 +182,7 @@ class WidefieldModel:
     @classmethod
     def from_calibration(
         cls,
-        cal: Any,
+        cal: Calibration,
         *,
         kind: str,
         field_shape: tuple[int, int],
@@ -190,14 +193,14 @@ class WidefieldModel:
         k_near: int = 6,
         min_fraction: float = 0.5,
     ) -> WidefieldModel:
-        """Tabulate a :class:`~latentz.calibration.calibration.Calibration`'s kept particles.
+        """Tabulate a :class:`~latentz.calibration.result.Calibration`'s kept particles.
 
         ``field_shape`` is ``(H, W)`` of the whole field in pixels (stage positions included).
         The s grid has ``n_s`` values over the shape values that at least ``min_particles`` kept
         particles cover (a few particles with unusual ranges must not stretch it), and the z grid
         spans the resulting heights in steps of at most ``z_step_nm``. Each particle contributes
         only inside its own ranges: its monotonic shape range and the z span it was imaged over
-        (:meth:`~latentz.calibration.calibration.Calibration.local_z`, ``local_delta``). Other
+        (:meth:`~latentz.calibration.result.Calibration.local_z`, ``local_delta``). Other
         options as in :meth:`from_tables`.
         """
         kept = cal.kept
@@ -461,8 +464,8 @@ class CurveModel:
     field_shape: tuple[int, int]
 
     @classmethod
-    def from_calibration(cls, cal: Any, *, field_shape: tuple[int, int]) -> CurveModel:
-        """The kept particles of a :class:`~latentz.calibration.calibration.Calibration`."""
+    def from_calibration(cls, cal: Calibration, *, field_shape: tuple[int, int]) -> CurveModel:
+        """The kept particles of a :class:`~latentz.calibration.result.Calibration`."""
         kept = cal.kept
         if kept.size == 0:
             raise ValueError("Every calibration particle was culled: nothing to apply.")

@@ -10,7 +10,7 @@ Batches stream through the GPU: the ROIs are cut into batches of bounded size, c
 host buffers on two CUDA streams, so that one batch's copies overlap the other's fit, and the
 results come back the same way. Device memory is bounded by two batches, whatever the input size.
 
-Importing this module imports ``numba.cuda``; :mod:`latentz.engine` decides whether to.
+Importing this module imports ``numba.cuda``; :mod:`latentz._shared.engine` decides whether to.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numba import cuda, float64
 
-from latentz._cuda_buffers import batch_size, buffer_pair
+from latentz._shared.cuda_buffers import batch_size, buffer_pair
 from latentz.fit import _kernels
 
 __all__ = ["fit_batch_cuda"]
@@ -90,7 +90,7 @@ def _fit_kernel(npix: int) -> Any:
 
 class _Slot:
     """Pinned host buffers, device buffers and a stream for one batch of ``size`` ROIs; slot
-    ``index`` of a thread keeps its buffers between calls (:mod:`latentz._cuda_buffers`)."""
+    ``index`` of a thread keeps its buffers between calls (:mod:`latentz._shared.cuda_buffers`)."""
 
     def __init__(self, index: int, size: int, roi_shape: tuple[int, int], dtype: Any) -> None:
         self.stream = cuda.stream()

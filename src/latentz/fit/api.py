@@ -9,10 +9,10 @@ import numba
 import numpy as np
 import pandas as pd
 
+from latentz._shared.engine import resolve_device
 from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.camera import Camera
-from latentz.engine import resolve_device
 from latentz.fit import _kernels
 from latentz.fit._model import PARAMS, as_param_array, photons_of
 from latentz.fit.robust import sandwich_batch
@@ -133,7 +133,8 @@ def fit_arrays(
         or when an accepted step lowered the objective by at most ``tol^2``. Below about 1e-6,
         float64 may not resolve the objective's changes on noisy ROIs.
     device : {"auto", "cpu", "cuda"}
-        Where to fit (:func:`latentz.engine.resolve_device`): the CPU cores, or one GPU thread
+        Where to fit (:func:`latentz._shared.engine.resolve_device`): the CPU cores, or one GPU
+        thread
         per ROI in numba's CUDA target (extra ``latentz[gpu]``); the results agree.
     errors : {"crlb", "sandwich"}
         ``"crlb"`` (default): the Cramér–Rao bound, exact when the spots are the Gaussian of

@@ -12,10 +12,10 @@ import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
+from latentz._shared.figures import mark_empty, save_figure
 from latentz.motion import analyses
 from latentz.motion.analyses import OutOfPlanePlay
 from latentz.motion.uncertainty import representative_simulation
-from latentz.report import mark_empty, save_figure
 
 __all__ = [
     "motion_figures",

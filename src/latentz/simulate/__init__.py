@@ -6,7 +6,6 @@ with shot noise, read noise, offset, gain and 16-bit saturation. Datasets come w
 through-focus calibration stacks, test spots, aperture arrays and the paper's rotating microgear.
 """
 
-from latentz.simulate._write import DATASET_KINDS, write_dataset, write_files
 from latentz.simulate.aberrations import MODE_NAMES, AberrationMap
 from latentz.simulate.datasets import (
     ApertureArrayDataset,
@@ -17,8 +16,10 @@ from latentz.simulate.datasets import (
     stage_origins,
 )
 from latentz.simulate.figures import psf_gallery, save_psf_gallery
+from latentz.simulate.files import write_files
 from latentz.simulate.gear import GearMovie, gear_movie
 from latentz.simulate.optics import Optics
+from latentz.simulate.presets import DATASET_KINDS, write_dataset
 
 __all__ = [
     "AberrationMap",

@@ -27,10 +27,12 @@ from latentz._shared.validate import (
     check_finite,
     check_int,
     check_positive,
+    check_shape2,
 )
 from latentz.camera import Camera
 from latentz.simulate._render import best_focus_defocus_nm, expose, render_expected
 from latentz.simulate.aberrations import AberrationMap
+from latentz.simulate.files import dataset_metadata, write_files
 from latentz.simulate.optics import Optics
 
 __all__ = [
@@ -45,28 +47,8 @@ __all__ = [
 DEFECT_KINDS = ("none", "dimer", "large")
 
 
-def _shape2(name: str, value: Any) -> tuple[int, int]:
-    if not isinstance(value, tuple | list) or len(value) != 2:
-        raise ValueError(f"Expected `{name}` to be (rows, columns), got {value!r}.")
-    return tuple(check_int(name, v, minimum=1) for v in value)  # type: ignore[return-value]
-
-
 def _default_camera(optics: Optics) -> Camera:
     return Camera(pixel_size_nm=optics.pixel_size_nm)
-
-
-def _metadata(obj: Any) -> dict[str, Any]:
-    return {
-        "camera": obj.camera.as_dict(),
-        "optics": obj.optics.as_dict(),
-        "aberrations": obj.aberrations.as_dict(),
-        "seed": obj.seed,
-        "conventions": {
-            "image": "x is the column, y the row; the centre of pixel [i, j] is at x = j, y = i",
-            "axial": "defocus_nm = z_nm + z_piezo_nm; z_focus_nm = focus_defocus_nm - z_nm",
-            "intensity": "photons are photoelectrons; ADU = electrons / gain + offset",
-        },
-    }
 
 
 def stage_origins(
@@ -146,7 +128,7 @@ class CalibrationDataset:
 
     def metadata(self) -> dict[str, Any]:
         """Everything needed to reproduce or interpret the dataset, JSON-ready."""
-        meta = _metadata(self)
+        meta = dataset_metadata(self)
         meta.update(
             kind="calibration",
             z_nm=self.z_nm.tolist(),
@@ -164,8 +146,6 @@ class CalibrationDataset:
 
     def write(self, out_dir: str | os.PathLike) -> list[Path]:
         """Write the dataset to ``out_dir`` (see :func:`latentz.simulate.write_files`)."""
-        from latentz.simulate._write import write_files
-
         return write_files(self, out_dir)
 
 
@@ -236,7 +216,7 @@ def calibration_dataset(
     fraction = check_positive("defective_fraction", defective_fraction, allow_zero=True)
     if fraction > 1:
         raise ValueError(f"Expected `defective_fraction` to be <= 1, got {defective_fraction}.")
-    frame_shape = _shape2("frame_shape", frame_shape)
+    frame_shape = check_shape2("frame_shape", frame_shape)
     field_shape = aberrations.field_shape
     origins = stage_origins(n_stage_positions, frame_shape, field_shape)
     rng = np.random.default_rng(seed)
@@ -395,7 +375,7 @@ def render_spots(
     aberrations = aberrations or AberrationMap.default(seed=0)
     camera = camera or _default_camera(optics)
     check_columns("spots", spots, ("x", "y", "z_nm"))
-    frame_shape = _shape2("frame_shape", frame_shape)
+    frame_shape = check_shape2("frame_shape", frame_shape)
     truth = spots.copy().reset_index(drop=True)
     for name, default in (("frame", 0), ("photons", photons), ("diameter_nm", diameter_nm)):
         if name not in truth.columns:
@@ -481,7 +461,7 @@ class ApertureArrayDataset:
 
     def metadata(self) -> dict[str, Any]:
         """Everything needed to reproduce or interpret the dataset, JSON-ready."""
-        meta = _metadata(self)
+        meta = dataset_metadata(self)
         meta.update(
             kind="apertures",
             z_nm=self.z_nm.tolist(),
@@ -497,8 +477,6 @@ class ApertureArrayDataset:
 
     def write(self, out_dir: str | os.PathLike) -> list[Path]:
         """Write the dataset to ``out_dir`` (see :func:`latentz.simulate.write_files`)."""
-        from latentz.simulate._write import write_files
-
         return write_files(self, out_dir)
 
 
@@ -542,7 +520,7 @@ def aperture_array(
     pitch = check_positive("pitch_nm", pitch_nm)
     rotation = check_finite("rotation_rad", rotation_rad)
     kappa = 0.0 if distortion is None else check_finite("distortion", distortion)
-    shape = _shape2("shape", shape)
+    shape = check_shape2("shape", shape)
     fh, fw = aberrations.field_shape
     if origin is None:
         origin = ((fh - shape[0]) // 2, (fw - shape[1]) // 2)

@@ -11,11 +11,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from latentz._shared.validate import check_finite, check_int, check_positive
+from latentz._shared.validate import check_finite, check_int, check_positive, check_shape2
 from latentz.camera import Camera
 from latentz.simulate._render import best_focus_interpolator, expose, render_expected
 from latentz.simulate.aberrations import AberrationMap
-from latentz.simulate.datasets import _metadata, _shape2
+from latentz.simulate.files import dataset_metadata, write_files
 from latentz.simulate.gear_motion import GearTruth, gear_trajectory
 from latentz.simulate.optics import Optics
 
@@ -65,7 +65,7 @@ class GearMovie:
 
     def metadata(self) -> dict[str, Any]:
         """Everything needed to reproduce or interpret the dataset, JSON-ready."""
-        meta = _metadata(self)
+        meta = dataset_metadata(self)
         meta.update(
             kind="gear",
             n_frames=int(self.frames.shape[0]),
@@ -119,8 +119,6 @@ class GearMovie:
 
     def write(self, out_dir: str | os.PathLike) -> list[Path]:
         """Write the movie, truth, motion and metadata to ``out_dir``."""
-        from latentz.simulate._write import write_files
-
         return write_files(self, out_dir)
 
 
@@ -164,7 +162,7 @@ def gear_movie(
         n_cycles, n_particles, gear_diameter_um = min(n_cycles, 4), min(n_particles, 10), 100.0
         frame_shape = frame_shape or (1024, 1024)
     fh, fw = aberrations.field_shape
-    frame_shape = _shape2("frame_shape", frame_shape or (fh, fw))
+    frame_shape = check_shape2("frame_shape", frame_shape or (fh, fw))
     if origin is None:
         origin = ((fh - frame_shape[0]) // 2, (fw - frame_shape[1]) // 2)
     r0, c0 = (check_int("origin", int(v), minimum=0) for v in origin)

@@ -46,7 +46,6 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from latentz._shared.validate import check_finite, check_int, check_positive
-from latentz.motion._axis_angle import decompose_rotation
 
 __all__ = ["GearTruth", "gear_trajectory"]
 
@@ -135,6 +134,17 @@ def _place_particles(rng: np.random.Generator, n: int, radius_nm: float) -> np.n
 
 def _unit(angle: float) -> np.ndarray:
     return np.array([np.cos(angle), np.sin(angle)])
+
+
+def _axis_angles(rotvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """γ, β, α (radians) and where α is defined, from rotation vectors (scipy's axis × angle):
+    γ the angle, β the axis's angle from z, α its azimuth (undefined for a vertical axis)."""
+    gamma = np.linalg.norm(rotvec, axis=-1)
+    horizontal = np.hypot(rotvec[..., 0], rotvec[..., 1])
+    beta = np.arctan2(horizontal, rotvec[..., 2])
+    defined = horizontal > 1e-9
+    alpha = np.where(defined, np.arctan2(rotvec[..., 1], rotvec[..., 0]), np.nan)
+    return gamma, beta, alpha, defined
 
 
 def gear_trajectory(
@@ -232,7 +242,7 @@ def gear_trajectory(
     rot = np.einsum("kab,kcb->kac", pose_r[1:], pose_r[:-1])
     raw_t = hub[1:] - np.einsum("kab,kb->ka", rot, hub[:-1])
     delta = raw_t + np.einsum("kab,b->ka", rot, centre) - centre
-    gamma, beta, alpha, defined = decompose_rotation(rot)
+    gamma, beta, alpha, defined = _axis_angles(Rotation.from_matrix(rot).as_rotvec())
 
     positions = pd.DataFrame(
         {

@@ -29,8 +29,8 @@ import numpy as np
 import scipy.fft
 
 from latentz._shared.validate import check_array, check_int, check_positive
+from latentz._shared.zernike import zernike_polar
 from latentz.simulate._kernels import mft_power
-from latentz.zernike import zernike_polar
 
 __all__ = ["Optics"]
 

@@ -1,7 +1,8 @@
 """An independent validation microscope: other optics code, other aberration fields.
 
 Truth for the widefield models that latentz's own simulator cannot give: this package shares no
-code with :mod:`latentz.simulate` or :mod:`latentz.zernike` (see :mod:`.microscope`), and its
+code with :mod:`latentz.simulate` or :mod:`latentz._shared.zernike` (see :mod:`.microscope`), and
+its
 aberrations vary across the field as smooth random fields with a local defect, not as
 polynomials (:mod:`.fields`). :mod:`.datasets` makes calibration stacks and test frames;
 :mod:`.truth` scores localizations against the truth.

@@ -1,6 +1,7 @@
 """Optics of the validation microscope: a scalar pupil-function PSF, computed independently.
 
-This module shares no code with :mod:`latentz.simulate` or :mod:`latentz.zernike`, and takes a
+This module shares no code with :mod:`latentz.simulate` or :mod:`latentz._shared.zernike`, and
+takes a
 different numerical route, so that agreement between latentz and this microscope is evidence and
 not self-consistency:
 

@@ -19,7 +19,7 @@ come from this package's optics.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -29,6 +29,9 @@ from latentz.calibration.local import LocalOptions
 from latentz.calibration.local import best_focus as amplitude_peak
 from latentz.calibration.polymodel import PolyModel
 from latentz.validation.datasets import ValidationData, _add, render_patches
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = ["bead_fits", "best_focus", "emitter_fits", "focus_of", "localize_test", "origin_plane",
            "score", "study_truth"]  # fmt: skip
@@ -127,7 +130,7 @@ def localize_test(
     *,
     roi_size: int | None = None,
     max_px: float = 2.0,
-    calibration: Any = None,
+    calibration: Calibration | None = None,
 ) -> pd.DataFrame:
     """Detect and fit the test frames with :func:`latentz.localization.localize` (with
     ``calibration``, its ROI unless ``roi_size`` is given, and its 3D localizations); keep
@@ -143,7 +146,7 @@ def localize_test(
 
 
 def score(
-    data: ValidationData, located: pd.DataFrame, truth: dict[str, Any], calibration: Any
+    data: ValidationData, located: pd.DataFrame, truth: dict[str, Any], calibration: Calibration
 ) -> pd.DataFrame:
     """Errors of ``calibration.apply`` output against the truth: one row per spot.
 
@@ -186,7 +189,7 @@ def study_truth(data: ValidationData, *, roi_size: int) -> dict[str, Any]:
 
 
 def origin_plane(
-    data: ValidationData, truth: dict[str, Any], calibration: Any, *, max_px: float = 1.0
+    data: ValidationData, truth: dict[str, Any], calibration: Calibration, *, max_px: float = 1.0
 ) -> np.ndarray:
     """The calibration's z = 0 in truth: ``(c0, cx, cy)`` of the least-squares plane
     ``z = c0 + cx x + cy y`` (x, y in px, nm) through the noise-free piezo best focus plus

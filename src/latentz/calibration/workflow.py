@@ -1,7 +1,7 @@
 """The calibration pipeline: stacks → traces → local models → culling → tilt removal.
 
 :func:`calibrate` turns through-focus stacks of calibration particles into a
-:class:`~latentz.calibration.calibration.Calibration`: traces of every particle, its local models
+:class:`~latentz.calibration.result.Calibration`: traces of every particle, its local models
 (z_f, Δx'(z), Δy'(z), z(shape) with σ's), culling of defective particles, and removal of the
 substrate tilt so that z = 0 is the focal surface of the calibration particles after levelling.
 """
@@ -16,21 +16,21 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import LatentzWarning, check_z_step, warn
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
-from latentz.calibration.calibration import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
 from latentz.calibration.depth import depth_ratio_per_nm
 from latentz.calibration.heights import particle_heights
 from latentz.calibration.local import LocalOptions, fit_local
+from latentz.calibration.result import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.roi import MIN_ROI, roi_for_width, roi_limit, widest_spot_px
 from latentz.calibration.shape import SHAPES, astigmatism_angle
 from latentz.calibration.shape_choice import choose, score_shapes
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces, extract_traces
 from latentz.camera import Camera
-from latentz.engine import resolve_device
 
 __all__ = ["calibrate", "calibrate_traces"]
 

@@ -29,13 +29,16 @@ calibration's astigmatism axis).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import warn
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = [
     "assess",
@@ -99,7 +102,7 @@ def _duplicates_and_neighbours(spots: pd.DataFrame, half_roi: float) -> tuple[np
     return duplicate, unresolved
 
 
-def _consistency(spots: pd.DataFrame, cal: Any) -> dict[str, np.ndarray]:
+def _consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:
     """χ², width ratio and axis mismatch of each spot against the calibration curves at its z."""
     from latentz.calibration.shape import ellipticity
 
@@ -130,7 +133,7 @@ def _consistency(spots: pd.DataFrame, cal: Any) -> dict[str, np.ndarray]:
 
 
 def assess(
-    spots: pd.DataFrame, calibration: Any = None, *, roi_size: int | None = None
+    spots: pd.DataFrame, calibration: Calibration | None = None, *, roi_size: int | None = None
 ) -> pd.DataFrame:
     """A copy of ``spots`` with the quality flags, ``good``, and (with a calibration that was
     applied to them) the consistency scores; see the module docstring. ``roi_size`` (pixels)

@@ -6,8 +6,6 @@ provenance, resumable chunking, atomic outputs.
 
 from __future__ import annotations
 
-import datetime as _dt
-import hashlib
 import os
 import warnings
 from pathlib import Path
@@ -16,47 +14,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from latentz import __version__
+from latentz._shared.provenance import provenance
 from latentz._shared.validate import check_choice
 
 __all__ = [
-    "file_digest",
-    "stamp",
-    "provenance",
     "localize_movies",
     "track_file",
     "motion_outputs",
     "report_run",
 ]
-
-
-def file_digest(path: str | os.PathLike, *, block: int = 1 << 20) -> str:
-    """SHA-256 of a file, hex."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(block):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def stamp() -> dict[str, str]:
-    """The latentz version and the date and time now (UTC, ISO 8601), for output metadata."""
-    return {
-        "latentz_version": __version__,
-        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-    }
-
-
-def provenance(inputs: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
-    """Metadata that every output carries: inputs (name, size, SHA-256), options, version, date."""
-    described = {}
-    for role, paths in inputs.items():
-        items = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
-        described[role] = [
-            {"name": str(p), "bytes": Path(p).stat().st_size, "sha256": file_digest(p)}
-            for p in items
-        ]
-    return {**stamp(), "inputs": described, "options": options}
 
 
 def localize_movies(
@@ -83,22 +49,22 @@ def localize_movies(
 
     ``camera`` overrides the calibration's camera for reading the movies (``camera_file``,
     ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm``, as
-    :func:`latentz.cli_options.camera_from_options`), e.g. when they were recorded with another
+    :func:`latentz.cli.options.camera_from_options`), e.g. when they were recorded with another
     gain. Positions are converted to nm with the calibration's pixel size, which its models were
     made in; a different ``pixel_size_nm`` is warned about. ``track`` runs
     :func:`latentz.localize`'s tracking mode within each chunk. ``device`` ("auto", "cpu",
-    "cuda") is where detection and fits run (:func:`latentz.engine.resolve_device`).
+    "cuda") is where detection and fits run (:func:`latentz._shared.engine.resolve_device`).
     """
     import dask.array as da
 
+    from latentz._shared.engine import resolve_device
     from latentz._shared.sanity import LatentzWarning, check_pixel_size, check_widths
     from latentz.calibration import Calibration
-    from latentz.chunked import run_chunked
-    from latentz.cli_options import camera_from_options
-    from latentz.engine import resolve_device
+    from latentz.cli.chunked import run_chunked
+    from latentz.cli.options import camera_from_options
     from latentz.io import read_stack
     from latentz.localization import check_camera_offset, localize
-    from latentz.quality import assess, check_calibration_fits
+    from latentz.localization.quality import assess, check_calibration_fits
 
     if fmt is not None:
         check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
@@ -167,7 +133,7 @@ def localize_movies(
     )
     check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
     if fmt == "picasso":
-        from latentz.picasso_format import write_picasso
+        from latentz.io.picasso import write_picasso
 
         table_path.unlink()
         write_picasso(
@@ -206,12 +172,14 @@ def track_tables(
     good_only: bool = True,
 ) -> dict[str, pd.DataFrame]:
     """Link the in-range localizations (only the ``good`` ones unless ``good_only`` is False,
-    see :mod:`latentz.quality`), fit rigid motion, its Monte Carlo uncertainty and Table 1,
+    see :mod:`latentz.localization.quality`), fit rigid motion, its Monte Carlo uncertainty and
+    Table 1,
     with the drift column (Supp. Note 2: the RMS apparent translation of the constellation per
     frame without intentional motion) from ``static_frames`` of ``locs`` or from
     ``static_locs``, a localization table recorded without intentional motion. The motion
     table's ``attrs["quality"]`` says how many in-range rows were dropped, and why."""
     from latentz._shared.validate import check_columns
+    from latentz.localization.quality import good_rows
     from latentz.motion import (
         drift,
         link,
@@ -220,7 +188,6 @@ def track_tables(
         rigid_motion,
         table1,
     )
-    from latentz.quality import good_rows
 
     check_columns("locs", locs, ("frame", "x_nm", "y_nm", "z_nm", "in_range"))
     if static_frames and static_locs is not None:
@@ -313,10 +280,9 @@ def track_file(
 def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
     """Write one HTML report of whatever a run folder holds: calibration (``*.h5``),
     localization tables (``*.parquet``) and motion tables (with their ``track`` siblings)."""
-    from latentz import sections
     from latentz.calibration import Calibration
     from latentz.io import read_table
-    from latentz.report import write_report
+    from latentz.report import sections, write_report
 
     folder = Path(run_dir).resolve()
     quality, parts = [], []

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,7 @@ import pandas as pd
 
 from latentz._shared.atomic import write_bytes_atomic, write_text_atomic
 
-__all__ = ["Section", "figure_png", "mark_empty", "save_figure", "table_html", "write_report"]
+__all__ = ["Section", "table_html", "write_report"]
 
 
 @dataclass(frozen=True)
@@ -31,45 +30,6 @@ class Section:
     figures: dict[str, bytes] = field(default_factory=dict)
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
     captions: dict[str, str] = field(default_factory=dict)
-
-
-def _png(fig, dpi: int) -> bytes:
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
-    return buffer.getvalue()
-
-
-def figure_png(fig, *, dpi: int = 110) -> bytes:
-    """Render a matplotlib figure to PNG bytes and close it."""
-    import matplotlib.pyplot as plt
-
-    png = _png(fig, dpi)
-    plt.close(fig)
-    return png
-
-
-def mark_empty(ax, text: str) -> None:
-    """Say in words why a panel has no data, instead of leaving an empty axis."""
-    ax.cla()
-    ax.set(xticks=[], yticks=[])
-    ax.text(
-        0.5,
-        0.5,
-        text,
-        ha="center",
-        va="center",
-        wrap=True,
-        fontsize=9,
-        color="0.3",
-        transform=ax.transAxes,
-    )
-
-
-def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> Path:
-    """Save a matplotlib figure as a PNG file atomically (the figure stays open)."""
-    target = Path(path)
-    write_bytes_atomic(target, _png(fig, dpi))
-    return target
 
 
 _STYLE = """

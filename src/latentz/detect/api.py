@@ -23,9 +23,9 @@ import numpy as np
 import pandas as pd
 from scipy import ndimage
 
-from latentz import _detect_kernels as _k
 from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_int, check_positive
+from latentz.detect import _kernels as _k
 
 __all__ = [
     "Detections",

@@ -11,18 +11,18 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import dask
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
 from latentz.detect import cut_rois, detect_arrays, roi_corners
-from latentz.engine import resolve_device
 from latentz.fit.api import (
     FIT_COLUMNS,
     METHODS,
@@ -32,8 +32,11 @@ from latentz.fit.api import (
     with_sandwich,
 )
 from latentz.io import as_frames, open_movie, read_frames
-from latentz.quality import assess, check_calibration_fits
-from latentz.tracking import localize_tracked
+from latentz.localization.follow import localize_tracked
+from latentz.localization.quality import assess, check_calibration_fits
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
 
@@ -66,7 +69,7 @@ def _localize_chunk(
     photons = _photons(np.asarray(block), camera)
     detector = detect_arrays
     if device == "cuda":
-        from latentz._detect_cuda import detect_arrays_cuda as detector
+        from latentz.detect._cuda import detect_arrays_cuda as detector
     found = detector(photons, roi_size=roi_size, threshold=threshold, sigma=sigma)
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
@@ -185,7 +188,7 @@ def _localize_chunks(
 def localize(
     frames: Any,
     *,
-    calibration: Any = None,
+    calibration: Calibration | None = None,
     camera: Camera | None = None,
     roi_size: int | None = None,
     threshold: float | None = None,
@@ -230,10 +233,11 @@ def localize(
         Frames per task; a few chunks (one per worker thread) are held in memory at once. The
         default keeps a chunk near 64 MB of float64 frames (512 MB on a GPU).
     device : {"auto", "cpu", "cuda"}
-        Where detection and fits run (:func:`latentz.engine.resolve_device`); "cuda" uses
+        Where detection and fits run (:func:`latentz._shared.engine.resolve_device`); "cuda" uses
         numba's CUDA target (extra ``latentz[gpu]``) and finds the same spots.
     track : bool
-        Tracking mode (:mod:`latentz.tracking`): fit each emitter in the ROI predicted from its
+        Tracking mode (:mod:`latentz.localization.follow`): fit each emitter in the ROI predicted
+        from its
         last positions, reading only those ROIs (a TIFF path is memory-mapped); detect whole
         frames every ``detect_every`` frames and wherever a fit is lost, and the frame's edge
         band on every frame. Frames run in order in this process (``scheduler`` is not used);
@@ -249,7 +253,8 @@ def localize(
         score in noise units), ``edge`` (the ROI was shifted inward at the frame's edge) and
         ``close_pair`` (another detection lies inside this ROI); with a calibration, the
         columns of :meth:`~latentz.calibration.Calibration.apply` too. Then the quality verdict
-        of :func:`latentz.quality.assess`: ``good`` and the flags that explain it (nothing is
+        of :func:`latentz.localization.quality.assess`: ``good`` and the flags that explain it
+        (nothing is
         dropped); with a calibration that most spots contradict, one warning names the likely
         cause. Rows are ordered by frame; ``attrs["roi_size"]`` records the ROI.
     """

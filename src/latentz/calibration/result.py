@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measured_noise
+from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
 from latentz.calibration.reference import ReferenceField
 from latentz.calibration.shape import shape_value, uses_amplitude
@@ -31,7 +32,7 @@ from latentz.fit.api import CORRELATION_COLUMNS
 
 __all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
 
-FIELD_MODELS = ("zernike", "natural", "curves", "nearest")
+FIELD_MODELS = FIELD_MODEL_KINDS
 #: What ``field_model`` accepts: a model, or "auto" (the best by cross-validation).
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
@@ -81,7 +82,7 @@ class Calibration:
 
     def as_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """The whole state as ``({"group/name": ndarray}, JSON-able attributes)``."""
-        from latentz.calibration._state import to_arrays
+        from latentz.calibration.storage import to_arrays
 
         return to_arrays(self)
 
@@ -91,16 +92,16 @@ class Calibration:
         ``provenance`` (JSON-able, e.g. input files and their SHA-256) is added to
         :attr:`provenance` and stored with the options, camera, the latentz version and the date.
         """
-        from latentz.calibration._state import save
+        from latentz.calibration.storage import save
 
         save(self, path, provenance=provenance)
 
     @classmethod
     def load(cls, path: Any) -> Calibration:
         """Read a calibration written by :meth:`save`."""
-        from latentz.calibration._state import load
+        from latentz.calibration.storage import load
 
-        return load(path)
+        return load(path, factory=cls)
 
     @property
     def shape(self) -> str:

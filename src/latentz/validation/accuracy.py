@@ -22,11 +22,14 @@ Errors are reported per spot; :func:`rmse` removes one global offset per axis fi
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = [
     "widefield_study",
@@ -303,7 +306,7 @@ def widefield_study(
     return study
 
 
-def score(cal: Any, study: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
+def score(cal: Calibration, study: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Localize a :func:`widefield_study`'s test spots with ``cal``; errors against the focus
     and the geometric truths (:func:`error_table`)."""
     from latentz.calibration.shape import uses_amplitude

@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from latentz import _detect_kernels
-from latentz._cuda_buffers import batch_size, buffer_pair
+from latentz._shared.cuda_buffers import batch_size, buffer_pair
 from latentz._shared.validate import check_int, check_positive
-from latentz.detect import (
+from latentz.detect import _kernels as _detect_kernels
+from latentz.detect.api import (
     _MAD_TO_SIGMA,
     _MERGE_DIP,
     _MERGE_RADIUS_SIGMAS,

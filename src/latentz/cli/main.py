@@ -160,7 +160,7 @@ def _device_option(func):
 
 def _resolve_device(ctx: click.Context, param: click.Parameter, device: str) -> str:
     """The device, resolved while the options are read: before any file is opened."""
-    from latentz.engine import resolve_device
+    from latentz._shared.engine import resolve_device
 
     return resolve_device(device)
 
@@ -229,18 +229,18 @@ def calibrate(
     quiet,
 ) -> None:
     """Calibrate from through-focus stacks (one per stage position)."""
+    from latentz._shared.engine import resolve_device
     from latentz._shared.preflight import check_output_file
+    from latentz._shared.provenance import provenance
     from latentz.calibration import calibrate as run_calibration
-    from latentz.camera_source import camera_for_stacks
-    from latentz.cli_options import (
+    from latentz.camera.source import camera_for_stacks
+    from latentz.cli.options import (
         camera_from_options,
         read_camera_file,
         stage_offsets_px,
         z_positions,
     )
-    from latentz.engine import resolve_device
     from latentz.io import read_stack
-    from latentz.pipeline import provenance
 
     check_output_file(out, (".h5", ".hdf5"))
     device = resolve_device(device)
@@ -369,10 +369,10 @@ def localize(
     import time
 
     from latentz._shared.preflight import check_output_file
+    from latentz.camera.readout import frame_rate_hz
+    from latentz.cli.steps import localize_movies
     from latentz.io import read_stack
-    from latentz.pipeline import localize_movies
-    from latentz.quality import reasons, summary
-    from latentz.readout import frame_rate_hz
+    from latentz.localization.quality import reasons, summary
 
     check_output_file(out, (".parquet", ".pq", ".csv", ".hdf5"))
     if exposure_ms <= 0:
@@ -458,7 +458,7 @@ def track(
     --all-rows is given; the command says how many it dropped and why.
     """
     from latentz._shared.preflight import check_output_file
-    from latentz.pipeline import track_file
+    from latentz.cli.steps import track_file
 
     check_output_file(out, (".csv", ".parquet", ".pq"))
     motion = track_file(
@@ -483,7 +483,7 @@ def track(
 def report(run_dir: Path, out: Path) -> None:
     """Write one self-contained HTML report of a run folder."""
     from latentz._shared.preflight import check_output_file
-    from latentz.pipeline import report_run
+    from latentz.cli.steps import report_run
 
     check_output_file(out, (".html", ".htm"))
     click.echo(str(report_run(run_dir, out)))
@@ -502,12 +502,9 @@ def report(run_dir: Path, out: Path) -> None:
 @_quiet_option
 def demo(out_dir: Path, quick: bool, seed: int, quiet: bool) -> None:
     """Simulate, calibrate, localize, track and report: the whole job on built-in data."""
-    from latentz.demo import run_demo
+    from latentz.cli.demo import run_demo
 
     summary = run_demo(out_dir, quick=quick, seed=seed, progress=_progress(quiet))
     for line in summary:
         click.echo(line)
 
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
 
-from latentz.quality_report import quality_section
-from latentz.report import Section, figure_png
+from latentz._shared.figures import figure_png
+from latentz.report import Section
+from latentz.report.calibration_quality import quality_section
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = [
     "DOF_NAMES",
@@ -25,7 +31,9 @@ def _named(title: str, name: str) -> str:
     return f"{title}: {name}" if name else title
 
 
-def calibration_section(cal, *, particle: int | None = None, name: str = "") -> Section:
+def calibration_section(
+    cal: Calibration, *, particle: int | None = None, name: str = ""
+) -> Section:
     """Fig. 2 for one particle (default: the kept one nearest the field centre), Fig. 3, best
     focus / tilt / field curvature, and the culled particles with reasons; ``name`` (the file or
     run) goes in the title."""
@@ -85,7 +93,7 @@ def calibration_section(cal, *, particle: int | None = None, name: str = "") -> 
     )
 
 
-def widefield_section(cal, *, name: str = "") -> Section | None:
+def widefield_section(cal: Calibration, *, name: str = "") -> Section | None:
     """Widefield errors of each field model (Fig. 5) and the field maps (Fig. 4), if available."""
     from latentz.calibration.widefield import MIN_PARTICLES
 
@@ -142,10 +150,11 @@ def emitter_arrays_section(calibrations: dict) -> Section:
 
 def localization_section(locs: pd.DataFrame, *, name: str = "") -> Section:
     """Counts, the fraction in range, and histograms of z and of the uncertainties, over the
-    good rows (:func:`latentz.quality.good_rows`; all in-range rows of older tables)."""
+    good rows (:func:`latentz.localization.quality.good_rows`; all in-range rows of older
+    tables)."""
     import matplotlib.pyplot as plt
 
-    from latentz.quality import good_rows
+    from latentz.localization.quality import good_rows
 
     used, dropped = good_rows(locs)
     ok = used[used["in_range"].astype(bool)]
@@ -295,7 +304,7 @@ def motion_section(tracks, motion, uncertainty, summary, *, name: str = "") -> S
 
 def readout_section(*, exposure_ms: float = 1.0, n_rows: int = 2048) -> Section:
     """Supp. Fig. 22: imaging frequency and centroid precision against exposure and readout."""
-    from latentz.readout import frame_rate_hz, readout_figure
+    from latentz.camera.readout import frame_rate_hz, readout_figure
 
     rate = frame_rate_hz(exposure_ms, n_rows)
     return Section(

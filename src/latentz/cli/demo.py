@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from latentz.accuracy import error_figure, focal_plane, rmse
-from latentz.report import Section, figure_png, write_report
-from latentz.sections import DOF_NAMES
+from latentz._shared.figures import figure_png
+from latentz.report import Section, write_report
+from latentz.report.sections import DOF_NAMES
+from latentz.validation.accuracy import error_figure, focal_plane, rmse
 
 __all__ = ["DemoSize", "run_demo"]
 
@@ -83,7 +84,8 @@ def _errors(
 
     The true axial position is the particle's defocus (height + piezo) minus the plane of best
     fit to the calibration particles' true best focus (``plane``, see
-    :func:`latentz.accuracy.focal_plane`): the calibrated z axis keeps the field curvature but
+    :func:`latentz.validation.accuracy.focal_plane`): the calibrated z axis keeps the field
+    curvature but
     not its planar part, which cannot be told apart from a substrate tilt.
     """
     ok = pairs["in_range"].to_numpy(bool)
@@ -165,15 +167,15 @@ def run_demo(
     import matplotlib
 
     matplotlib.use("Agg")
-    from latentz import sections
     from latentz import simulate as sim
     from latentz.calibration import ApertureLattice, calibrate
     from latentz.camera import Camera
+    from latentz.cli.steps import motion_outputs, track_tables
     from latentz.io import write_table
     from latentz.localization import localize
+    from latentz.localization.quality import assess
     from latentz.motion import motion_uncertainty
-    from latentz.pipeline import motion_outputs, track_tables
-    from latentz.quality import assess
+    from latentz.report import sections
 
     size = QUICK if quick else FULL
     out = Path(out_dir)

@@ -7,13 +7,16 @@ leave-one-particle-out cross-validation (``cal.crossval``), when the calibration
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 
 from latentz.calibration.heights import describe as describe_heights
 from latentz.report import Section
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
 
 __all__ = ["coverage_table", "quality_section", "SHAPE_NAMES"]
 
@@ -90,7 +93,7 @@ def _verdict(table: pd.DataFrame) -> str:
     )
 
 
-def _crossval_errors(cal: Any) -> pd.DataFrame | None:
+def _crossval_errors(cal: Calibration) -> pd.DataFrame | None:
     """The calibration's leave-one-particle-out prediction errors, if it carries them."""
     table = getattr(cal, "crossval", None)
     if callable(table):
@@ -98,7 +101,7 @@ def _crossval_errors(cal: Any) -> pd.DataFrame | None:
     return table if isinstance(table, pd.DataFrame) and len(table) else None
 
 
-def _why(cal: Any, key: str, default: str) -> str:
+def _why(cal: Calibration, key: str, default: str) -> str:
     """Why ``calibrate`` chose the shape, ``roi_size`` or field model, else ``default``."""
     reasons = {
         "shape": (cal.shape_choice or {}).get("reason"),
@@ -111,7 +114,7 @@ def _why(cal: Any, key: str, default: str) -> str:
 
 
 def quality_section(
-    cal: Any, *, name: str = "", truth: dict[str, pd.DataFrame] | None = None
+    cal: Calibration, *, name: str = "", truth: dict[str, pd.DataFrame] | None = None
 ) -> Section:
     """What a reader must know before trusting the rest of a report on calibration ``cal``.
 

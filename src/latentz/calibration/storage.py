@@ -1,6 +1,6 @@
 """A Calibration as plain arrays, and its HDF5 file (local stage).
 
-Every part of a :class:`~latentz.calibration.calibration.Calibration` is arrays plus a few
+Every part of a :class:`~latentz.calibration.result.Calibration` is arrays plus a few
 scalars and options, so it flattens to ``{"group/name": ndarray}``. :func:`save` writes that
 mapping to HDF5 (one dataset per key, options, camera and provenance as JSON attributes) through
 an atomic temporary file; :func:`load` reads it back bit for bit. The widefield models (the
@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -31,6 +31,7 @@ _READABLE = (FORMAT, "latentz-calibration/2", "latentz-calibration/1")
 _CV_TEXT = ("model",)  # cross-validation columns stored as bytes
 #: Field models rebuilt from the local models on load, with no tables to store.
 _UNTABULATED = ("nearest", "curves")
+T = TypeVar("T")
 
 
 def _poly(prefix: str, model) -> dict[str, np.ndarray]:
@@ -99,9 +100,9 @@ def to_arrays(cal) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     return arrays, attrs
 
 
-def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
-    """Rebuild the Calibration that :func:`to_arrays` flattened."""
-    from latentz.calibration.calibration import Calibration
+def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any], *, factory: type[T]) -> T:
+    """Rebuild the calibration that :func:`to_arrays` flattened, as ``factory(...)`` (the
+    :class:`~latentz.calibration.Calibration` class)."""
     from latentz.calibration.crossval import CROSSVAL_COLUMNS
     from latentz.calibration.local import LocalModels, ShapeModel
     from latentz.calibration.polymodel import PolyModel
@@ -151,7 +152,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict[str, Any]):
     )
     camera = Camera(**attrs["camera"], flatfield=arrays.get("camera/flatfield"))
     scores = pd.DataFrame(group("culling/scores/"), index=np.arange(attrs["n_scores"]))
-    cal = Calibration(
+    cal = factory(
         camera=camera,
         traces=traces,
         local=local,
@@ -185,7 +186,7 @@ def save(cal, path: str | os.PathLike, *, provenance: dict[str, Any] | None = No
     information such as input file names and hashes)."""
     import h5py
 
-    from latentz.pipeline import stamp
+    from latentz._shared.provenance import stamp
 
     arrays, attrs = to_arrays(cal)
     # the version and date of this save, unless the calibration already records them
@@ -198,8 +199,8 @@ def save(cal, path: str | os.PathLike, *, provenance: dict[str, Any] | None = No
             h5.attrs[key] = json.dumps(value)
 
 
-def load(path: str | os.PathLike):
-    """Read a calibration written by :func:`save`."""
+def load(path: str | os.PathLike, *, factory: type[T]) -> T:
+    """Read a calibration written by :func:`save`, built as ``factory(...)``."""
     import h5py
 
     source = Path(path)
@@ -223,7 +224,7 @@ def load(path: str | os.PathLike):
             f"{found!r} (written by latentz {attrs.get('version', '?')}), expected {FORMAT!r}."
         )
     try:
-        return from_arrays(arrays, attrs)
+        return from_arrays(arrays, attrs, factory=factory)
     except KeyError as exc:
         raise ValueError(
             f"{source.name} is a damaged latentz calibration: {exc.args[0]!r} is missing."

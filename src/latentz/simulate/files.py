@@ -11,11 +11,8 @@ import numpy as np
 import pandas as pd
 
 from latentz._shared.atomic import atomic_path, write_text_atomic
-from latentz._shared.validate import check_choice
 
-__all__ = ["write_dataset", "write_files", "DATASET_KINDS"]
-
-DATASET_KINDS = ("calibration", "gear", "apertures")
+__all__ = ["write_files", "dataset_metadata"]
 
 
 def _write_tiff(path: Path, array: np.ndarray) -> Path:
@@ -81,47 +78,16 @@ def write_files(dataset: Any, out_dir: str | os.PathLike) -> list[Path]:
     return written
 
 
-def write_dataset(
-    kind: str,
-    out_dir: str | os.PathLike,
-    *,
-    seed: int = 0,
-    quick: bool = False,
-    plot: bool = False,
-) -> list[Path]:
-    """Simulate a dataset of ``kind`` ('calibration', 'gear' or 'apertures') and write it.
-
-    ``quick`` makes a small dataset in a few seconds; ``plot`` also writes ``psf_gallery.png``.
-    Returns the paths written. The CLI's ``latentz simulate KIND --out DIR`` calls this.
-    """
-    from latentz.simulate.datasets import aperture_array, calibration_dataset
-    from latentz.simulate.figures import save_psf_gallery
-
-    check_choice("kind", kind, DATASET_KINDS)
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
-        raise TypeError(f"Expected `seed` to be an integer, got {seed!r}.")
-    if kind == "calibration":
-        if quick:
-            dataset = calibration_dataset(
-                n_particles=16,
-                z_nm=np.linspace(-2000.0, 2000.0, 21),
-                n_stage_positions=4,
-                frame_shape=(128, 128),
-                min_spacing_px=30.0,
-                defective_fraction=0.125,
-                seed=seed,
-            )
-        else:
-            dataset = calibration_dataset(defective_fraction=0.05, seed=seed)
-    elif kind == "apertures":
-        dataset = aperture_array(shape=(128, 128) if quick else (512, 512), seed=seed)
-    else:
-        from latentz.simulate.gear import gear_movie
-
-        dataset = gear_movie(quick=quick, seed=seed)
-    written = write_files(dataset, out_dir)
-    if plot:
-        path = Path(out_dir) / "psf_gallery.png"
-        save_psf_gallery(path, optics=dataset.optics, aberrations=dataset.aberrations)
-        written.append(path)
-    return written
+def dataset_metadata(obj: Any) -> dict[str, Any]:
+    """A dataset's camera, optics, aberrations, seed and conventions, for its metadata JSON."""
+    return {
+        "camera": obj.camera.as_dict(),
+        "optics": obj.optics.as_dict(),
+        "aberrations": obj.aberrations.as_dict(),
+        "seed": obj.seed,
+        "conventions": {
+            "image": "x is the column, y the row; the centre of pixel [i, j] is at x = j, y = i",
+            "axial": "defocus_nm = z_nm + z_piezo_nm; z_focus_nm = focus_defocus_nm - z_nm",
+            "intensity": "photons are photoelectrons; ADU = electrons / gain + offset",
+        },
+    }

@@ -1,0 +1,5 @@
+"""``python -m latentz.cli``: the command line."""
+
+from latentz.cli.main import main
+
+main()

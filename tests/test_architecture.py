@@ -1,0 +1,158 @@
+"""The package's import graph, read from the source with `ast`: no import circle, and no import
+from a lower layer into a higher one (the layers of docs/architecture.md)."""
+
+from __future__ import annotations
+
+import ast
+import functools
+from pathlib import Path
+
+import latentz
+
+ROOT = Path(latentz.__file__).parent
+
+#: Layers, bottom up; a module may import only from its own layer or below.
+LAYERS = (
+    ("_version", "_shared"),
+    ("camera", "io", "detect"),
+    ("fit", "simulate"),
+    ("calibration",),
+    ("localization", "motion", "analysis"),
+    ("validation", "report"),
+    ("cli",),
+)
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _imports(tree: ast.AST, package: str) -> list[str]:
+    """Every module imported anywhere in ``tree`` (function bodies included), except under
+    ``if TYPE_CHECKING:``; ``from a import b`` counts as ``a.b`` where ``b`` is a module."""
+    found: list[str] = []
+
+    def visit(node: ast.AST) -> None:
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            for child in node.orelse:
+                visit(child)
+            return
+        if isinstance(node, ast.Import):
+            found.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1]
+                    + ([base] if base else [])
+                )
+            found.extend(f"{base}.{alias.name}" for alias in node.names)
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(tree)
+    return found
+
+
+@functools.cache
+def import_graph() -> dict[str, set[str]]:
+    """``{module: {latentz modules it imports}}`` over every file of ``src/latentz``."""
+    files = {_module_name(p): p for p in ROOT.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in files.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        targets = set()
+        for imported in _imports(ast.parse(path.read_text()), package):
+            # `from a import b`: the module a.b if it exists, else a itself
+            if imported in files:
+                targets.add(imported)
+            elif imported.rpartition(".")[0] in files and imported.startswith("latentz"):
+                targets.add(imported.rpartition(".")[0])
+        graph[name] = targets - {name}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def connect(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                connect(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            connect(v)
+    return found
+
+
+def _layer(module: str) -> int | None:
+    top = module.split(".")[1] if module.count(".") else ""
+    for level, names in enumerate(LAYERS):
+        if top in names:
+            return level
+    return None
+
+
+def test_the_cycle_finder_finds_a_planted_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert cycles(graph) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_the_graph_sees_function_level_imports():
+    tree = ast.parse("def f():\n    from latentz.io import tables\n")
+    assert "latentz.io.tables" in _imports(tree, "latentz.x")
+    guarded = ast.parse(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import latentz.cli\n"
+    )
+    assert "latentz.cli" not in _imports(guarded, "latentz.x")
+
+
+def test_no_import_circle():
+    assert cycles(import_graph()) == []
+
+
+def test_every_top_level_folder_has_a_layer():
+    tops = {p.name for p in ROOT.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    tops |= {p.stem for p in ROOT.glob("*.py") if p.stem != "__init__"}
+    assert {t for t in tops if _layer(f"latentz.{t}") is None} == set()
+
+
+def test_no_import_runs_up_a_layer():
+    graph = import_graph()
+    upward = {
+        module: sorted(t for t in targets if (_layer(t) or 0) > _layer(module))
+        for module, targets in graph.items()
+        if _layer(module) is not None  # the package's own __init__ (the public API) is above all
+    }
+    assert {m: u for m, u in upward.items() if u} == {}
