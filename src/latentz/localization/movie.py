@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import dask
+import dask.array as da
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
@@ -50,8 +51,14 @@ _CHUNK_BYTES = 64 * 2**20
 
 def check_camera_offset(camera: Camera, movie: Any) -> None:
     """Warn if the camera offset (ADU) is above the median of the movie's first frame (every
-    fourth pixel): an offset above most pixels means the wrong camera settings."""
-    check_offset(camera.offset, float(np.median(np.asarray(movie[0][::4, ::4]))))
+    fourth pixel): an offset above most pixels means the wrong camera settings.
+
+    A lazy movie is read here, in this process: through a dask.distributed client its file
+    reader would have to be pickled, and it holds a lock."""
+    sample = movie[0][::4, ::4]
+    if isinstance(sample, da.Array):
+        sample = sample.compute(scheduler="synchronous")
+    check_offset(camera.offset, float(np.median(np.asarray(sample))))
 
 
 def _localize_chunk(
