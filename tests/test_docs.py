@@ -69,7 +69,7 @@ def test_readme_shows_the_demo_and_the_test_command_that_ci_runs():
 
 def test_the_checks_can_fail():
     # the patterns see what they guard against, so the tests above are not vacuous
-    text = "see [a](missing.txt), [b](https://x.org/y), [c](#top) and ![d](img/e.png \"t\")"
+    text = 'see [a](missing.txt), [b](https://x.org/y), [c](#top) and ![d](img/e.png "t")'
     assert _relative_links(text) == ["missing.txt", "img/e.png"]
     assert HISTORY.search("as issue 12 asks") and HISTORY.search("the Former model")
     assert not HISTORY.search("the formula of issues that remain")
