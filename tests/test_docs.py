@@ -15,6 +15,8 @@ README = ROOT / "README.md"
 DOCS = sorted((ROOT / "docs").glob("*.md"))
 #: A first page, not a manual: trackpy's README is 1.2 kB, scikit-image's 2.7 kB.
 README_LIMIT = 8_000
+#: Characters in a row of the benchmark table.
+BENCHMARK_ROW_LIMIT = 200
 #: Markdown links and images, [text](target) and ![alt](target); the target up to a space or ")".
 LINK = re.compile(r"!?\[[^\]]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 #: History has no place in pages that describe the present.
@@ -65,6 +67,13 @@ def test_readme_shows_the_demo_and_the_test_command_that_ci_runs():
     assert command in ci, ".ci/run no longer runs the README's test command"
     assert command in readme
     assert re.search(r"^\s*pip install \. && latentz demo\b", readme, re.MULTILINE)
+
+
+def test_benchmark_table_rows_stay_short():
+    # a row a reader can take in at once; details go in the notes under the table
+    rows = (ROOT / "benchmarks" / "README.md").read_text(encoding="utf-8").splitlines()
+    long = [row[:60] for row in rows if row.startswith("|") and len(row) > BENCHMARK_ROW_LIMIT]
+    assert not long, f"benchmarks/README.md rows over {BENCHMARK_ROW_LIMIT} characters: {long}"
 
 
 def test_the_checks_can_fail():
