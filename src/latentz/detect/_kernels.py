@@ -207,10 +207,10 @@ def noise_samples(frames, offset, gain, scale, background, factor, weights, stri
             out[t, a, b] = v - _background_at(background[t], factor, i, j)
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def noise_levels(samples, mad_to_sigma, out):
     """``out[t]``: 1.4826 x median absolute deviation of ``samples[t]`` (any shape)."""
-    for t in range(samples.shape[0]):
+    for t in numba.prange(samples.shape[0]):
         values = samples[t].ravel().astype(np.float64)
         centre = np.median(values)
         out[t] = mad_to_sigma * np.median(np.abs(values - centre))

@@ -53,6 +53,8 @@ _MAD_TO_SIGMA = 1.4826
 #: between them, is a noise ripple on the same spot, not a second emitter.
 _MERGE_RADIUS_SIGMAS = 3.0
 _MERGE_DIP = 2.0
+#: Pixels per maximum that the kernels' output has room for at first.
+_PIXELS_PER_MAXIMUM = 32 * 32
 #: Chunks of fewer pixels are detected on one thread (`one_thread_if`).
 _SMALL_PIXELS = 2**20
 
@@ -454,7 +456,8 @@ def _maxima(
     gain_rows = edge_noise_gain(height, weights).astype(np.float32)
     gain_cols = edge_noise_gain(width, weights).astype(np.float32)
     counts = np.zeros(n * strips, np.int64)
-    cap = 256
+    # room for a maximum per 32 x 32 px (a fuller task is rerun with room for its count)
+    cap = max(256, height * width // (strips * _PIXELS_PER_MAXIMUM))
     while True:
         rows = np.empty((n * strips, cap), np.int64)
         cols = np.empty((n * strips, cap), np.int64)
