@@ -19,7 +19,7 @@ LAYERS = (
     ("calibration",),
     ("localization", "motion", "analysis"),
     ("validation", "report"),
-    ("cli",),
+    ("cli", "viewer"),
 )
 
 
