@@ -37,7 +37,17 @@ def one_error_line(result, match):
 def test_help_lists_every_command():
     result = run("--help")
     assert result.exit_code == 0
-    for command in ("demo", "simulate", "calibrate", "localize", "track", "report"):
+    for command in (
+        "demo",
+        "simulate",
+        "calibrate",
+        "localize",
+        "track",
+        "report",
+        "render",
+        "drift",
+        "frc",
+    ):
         assert command in result.output
 
 
