@@ -21,16 +21,26 @@ RENDER_SUFFIXES = (".png", ".tif", ".tiff")
 #: The brightest pixels (this percentile of the occupied ones) saturate.
 _SATURATION_PERCENTILE = 99.5
 _COLOURBAR_PX = 110
+_SIDE_ROWS = 80
 _GAP_PX = 8
 
 
-def _widths(locs: pd.DataFrame, blur: str | float | None, column: str) -> np.ndarray | None:
+def _widths(
+    locs: pd.DataFrame, blur: str | float | None, column: str, pixel_nm: float
+) -> np.ndarray | None:
+    """Each localization's blur (nm), at least one pixel so that every one shows."""
     if blur is None:
         return None
     if isinstance(blur, str):
         check_choice("blur", blur, ("precision",))
-        return locs[column].to_numpy()
-    return np.full(len(locs), check_positive("blur", blur))
+        return np.maximum(locs[column].to_numpy(), pixel_nm)
+    return np.full(len(locs), max(check_positive("blur", blur), pixel_nm))
+
+
+def z_stretch(z_nm: np.ndarray, pixel_nm: float) -> float:
+    """How much the side view stretches z so that it is at least 80 pixels tall (1: none)."""
+    span = float(np.ptp(z_nm)) if len(z_nm) else 0.0
+    return max(1.0, _SIDE_ROWS * pixel_nm / max(span, pixel_nm))
 
 
 def _margin_nm(su: np.ndarray | None, sv: np.ndarray | None, pixel_nm: float) -> float:
@@ -58,10 +68,15 @@ def density_images(
 ) -> dict[str, tuple[Grid, np.ndarray, np.ndarray | None]]:
     """The float images behind :func:`render`: for each view ("xy", "xz") its grid, density
     (localizations per pixel, blurred) and the density-weighted mean of ``color`` per pixel
-    (None without colour). ``extent`` = (x_min, x_max, y_min, y_max) in nm."""
+    (None without colour). ``extent`` = (x_min, x_max, y_min, y_max) in nm. The side view's
+    z is stretched by :func:`z_stretch` (its rows are ``pixel_nm / z_stretch`` nm of z)."""
     used = _rows(locs, color, blur)
     x, y, z = (used[c].to_numpy() for c in ("x_nm", "y_nm", "z_nm"))
-    sx, sy, sz = (_widths(used, blur, f"{a}_err_nm") for a in "xyz")
+    sx, sy = (_widths(used, blur, f"{a}_err_nm", pixel_nm) for a in "xy")
+    stretch = z_stretch(z, pixel_nm)
+    sz = _widths(used, blur, "z_err_nm", pixel_nm / stretch)
+    z = z * stretch
+    sz = None if sz is None else sz * stretch
     margin = _margin_nm(sx, sy, pixel_nm) if extent is None else 0.0
     top = grid_for(x, y, pixel_nm, extent=extent, margin_nm=margin)
     z_margin = _margin_nm(sz, sz, pixel_nm)
@@ -134,7 +149,7 @@ def render(
     column = {"z": "z_nm"}.get(color, color) if color is not None else None
     views = density_images(locs, pixel_nm=pixel_nm, blur=blur, color=column, extent=extent)
     (top_grid, top, top_mean), (side_grid, side, side_mean) = views["xy"], views["xz"]
-    values = positions(locs, ("x_nm", "y_nm", "z_nm", column) if column else ("x_nm",))
+    values = _rows(locs, column, blur)
     if column is not None and z_range is None:
         z_range = tuple(np.percentile(values[column], [1, 99])) if len(values) else (0.0, 1.0)
     norm = Normalize(*(z_range if column is not None else (0.0, 1.0)))
@@ -152,14 +167,15 @@ def render(
     fig = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi, facecolor="black")
     fig.figimage(panels[0], xo=0, yo=height - top.shape[0], origin="upper")
     fig.figimage(panels[1], xo=0, yo=0, origin="upper")
-    _annotate(fig, top_grid, side_grid, height, column, norm, cmap)
+    stretch = z_stretch(values["z_nm"].to_numpy(), pixel_nm) if len(values) else 1.0
+    _annotate(fig, top_grid, side_grid, height, column, norm, cmap, stretch)
     fig.canvas.draw()
     rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)
     return rgb
 
 
-def _annotate(fig, top: Grid, side: Grid, height: int, column, norm, cmap) -> None:
+def _annotate(fig, top: Grid, side: Grid, height: int, column, norm, cmap, stretch) -> None:
     """Scale bar and view names (pixel positions), and the colour bar at the right."""
     from matplotlib.colorbar import ColorbarBase
     from matplotlib.patches import Rectangle
@@ -172,7 +188,8 @@ def _annotate(fig, top: Grid, side: Grid, height: int, column, norm, cmap) -> No
     text = {"color": "white", "fontsize": 8, "transform": None}
     fig.text(10, y_bar + 8, _bar_label(bar_nm), **text)
     fig.text(6, height - 14, "x–y", **text)
-    fig.text(6, side.n_v - 14, "x–z (z up)", **text)
+    side_name = "x–z (z up)" if stretch == 1 else f"x–z (z up, stretched ×{stretch:.3g})"
+    fig.text(6, side.n_v - 14, side_name, **text)
     if column is None:
         return
     figure_w, figure_h = fig.get_size_inches() * fig.dpi

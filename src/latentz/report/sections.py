@@ -166,8 +166,8 @@ def _seen(locs: pd.DataFrame) -> tuple[dict[str, bytes], dict[str, str], str]:
     from latentz.analysis import frc, render
 
     usable = locs[np.isfinite(locs[["x_nm", "y_nm", "z_nm"]]).all(axis=1)]
-    if len(usable) < 100:
-        return {}, {}, "Too few localizations (fewer than 100) for an image or an FRC."
+    if usable.empty:
+        return {}, {}, "No localization has a position in x, y and z to draw."
     pixel = _pixel_nm(usable, 10.0, 900)
     picture = f"Super-resolution image ({pixel:g} nm pixels)"
     figures = {picture: image_png(render(usable, pixel_nm=pixel))}
@@ -177,6 +177,8 @@ def _seen(locs: pd.DataFrame) -> tuple[dict[str, bytes], dict[str, str], str]:
         "the right). Bottom: the x–z side view on the same x axis, z up, blurred by the "
         "reported x and z errors. The bar at the lower left of the x–y view gives the scale."
     }
+    if len(usable) < 100:
+        return figures, captions, "Too few localizations (fewer than 100) for an FRC."
     result = frc(usable, pixel_nm=_pixel_nm(usable, 5.0, 4096))
     figures["Fourier ring correlation"] = figure_png(result.figure())
     captions["Fourier ring correlation"] = (
