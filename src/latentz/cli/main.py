@@ -488,14 +488,17 @@ def _locs_argument(func):
     return click.argument("locs", type=click.Path(dir_okay=False, exists=True))(func)
 
 
+def _out_file(help_text: str):
+    return click.option(
+        "--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help=help_text
+    )
+
+
 @main.command()
 @_locs_argument
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Image: .png (RGB with scale and z colour bars, x-y and x-z views) or .tif (float "
-    "density and mean z, pixel size in the metadata).",
+@_out_file(
+    "Image: .png (RGB with scale and z colour bars, x-y and x-z views) or .tif (float density "
+    "and mean z, pixel size in the metadata)."
 )
 @click.option("--pixel-nm", default=10.0, show_default=True, help="Image pixel, nm.")
 @click.option(
@@ -534,12 +537,7 @@ def _number(text: str, option: str) -> float:
 
 @main.command()
 @_locs_argument
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Corrected table (.parquet or .csv); the drift figure goes beside it (.drift.png).",
-)
+@_out_file("Corrected table (.parquet or .csv); the drift figure goes beside it (.drift.png).")
 @click.option("--method", default="rcc", show_default=True, type=click.Choice(["rcc", "fiducials"]))
 @click.option("--segment-frames", default=1000, show_default=True, help="RCC: frames per segment.")
 @click.option("--pixel-nm", default=20.0, show_default=True, help="RCC: image pixel, nm.")
