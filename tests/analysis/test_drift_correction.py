@@ -109,3 +109,23 @@ def test_no_fiducial_says_what_to_do():
     )
     with pytest.raises(ValueError, match="method='rcc'"):
         lz.correct_drift(locs, method="fiducials")
+
+
+def test_2d_data_get_lateral_correction_and_z_is_left_alone():
+    """No z (2D data): RCC still removes the lateral drift (within 5 nm RMS) and says z was not
+    corrected."""
+    rng = np.random.default_rng(4)
+    locs = blinking_emitters(
+        rng, n_emitters=1500, n_frames=3000, p_on=0.02, field_nm=8000, precision_nm=10
+    )
+    frames = locs["frame"].to_numpy()
+    truth = known_drift(frames, rng)
+    locs["x_nm"] += truth[:, 0]
+    locs["y_nm"] += truth[:, 1]
+    locs["z_nm"] = np.nan
+    corrected = lz.correct_drift(locs, method="rcc", segment_frames=300)
+    truth[:, 2] = 0.0
+    rms = _rms_error(corrected, truth)
+    assert rms[0] < 5 and rms[1] < 5, rms
+    assert (corrected["drift_z_nm"] == 0).all()
+    assert "not corrected" in corrected.attrs["drift"]["z"]

@@ -18,7 +18,7 @@ def segment_of(frames: np.ndarray, segment_frames: int) -> tuple[np.ndarray, np.
     """Segment index of each localization (blocks of ``segment_frames`` frames from the first)
     and each segment's centre, its localizations' mean frame. Empty blocks are skipped."""
     block = (frames - frames.min()) // segment_frames
-    labels, index = np.unique(block, return_inverse=True)
+    _, index = np.unique(block, return_inverse=True)
     centres = np.bincount(index, weights=frames) / np.bincount(index)
     return index, centres
 
@@ -120,9 +120,9 @@ def rcc_segments(
     blur_z_nm: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Segment centres (frames) and the drift of each segment, (n_segments, 3) x, y, z in nm
-    relative to the first segment. ``xyz`` holds x_nm, y_nm, z_nm (finite) of each row of
+    relative to the first segment. ``xyz`` holds x_nm, y_nm (finite) and z_nm of each row of
     ``frames``; images have ``pixel_nm`` pixels and Gaussian blur ``blur_nm`` (laterally) and
-    ``blur_z_nm`` (axially)."""
+    ``blur_z_nm`` (axially). z drift is NaN where some segment has no finite z (2D data)."""
     seg, centres = segment_of(frames, segment_frames)
     n_seg = len(centres)
     if n_seg < 3:
@@ -134,5 +134,8 @@ def rcc_segments(
     moved = xyz.copy()
     moved["x_nm"] -= lateral[seg, 0]
     moved["y_nm"] -= lateral[seg, 1]
-    axial = _axial(moved, seg, n_seg, pixel_nm, blur_nm, blur_z_nm)
+    with_z = np.isfinite(moved["z_nm"].to_numpy())
+    axial = np.full(n_seg, np.nan)
+    if np.unique(seg[with_z]).size == n_seg:
+        axial = _axial(moved[with_z], seg[with_z], n_seg, pixel_nm, blur_nm, blur_z_nm)
     return centres, np.column_stack([lateral, axial])

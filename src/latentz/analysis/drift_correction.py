@@ -21,20 +21,25 @@ def _rcc_drift(
 
     from latentz.analysis.crosscorrelation import rcc_segments
 
-    used = positions(locs, ("frame", "x_nm", "y_nm", "z_nm"))
+    used = positions(locs, ("frame", "x_nm", "y_nm"))
     blur_z = pixel_nm
-    if "z_err_nm" in locs:
+    if "z_err_nm" in locs and np.isfinite(locs["z_err_nm"]).any():
         blur_z = max(pixel_nm, float(np.nanmedian(locs.loc[used.index, "z_err_nm"])))
+    xyz = used[["x_nm", "y_nm"]].assign(z_nm=locs.loc[used.index, "z_nm"].astype(np.float64))
     centres, segments = rcc_segments(
-        used[["x_nm", "y_nm", "z_nm"]],
+        xyz,
         used["frame"].to_numpy().astype(np.int64),
         segment_frames=segment_frames,
         pixel_nm=pixel_nm,
         blur_nm=pixel_nm,
         blur_z_nm=blur_z,
     )
+    said = {"segments": len(centres)}
+    if np.isnan(segments[:, 2]).any():  # 2D data, or segments without z: z is left alone
+        segments[:, 2] = 0.0
+        said["z"] = "not corrected: some segments have no z"
     spline = CubicSpline(centres, segments, axis=0, bc_type="natural")
-    return spline(np.arange(first, first + n_frames)), {"segments": len(centres)}
+    return spline(np.arange(first, first + n_frames)), said
 
 
 def _fiducial_drift(
