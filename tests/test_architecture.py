@@ -20,7 +20,7 @@ LAYERS = (
     ("calibration",),
     ("localization", "motion", "analysis"),
     ("validation", "report"),
-    ("cli",),
+    ("cli", "viewer"),
 )
 
 

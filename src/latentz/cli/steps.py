@@ -23,11 +23,17 @@ if TYPE_CHECKING:
     from latentz.camera import Camera
 
 __all__ = [
+    "LOCALIZATION_FORMATS",
     "localize_movies",
     "track_file",
     "motion_outputs",
+    "read_used_localizations",
     "report_run",
 ]
+
+
+#: Formats ``localize`` writes: latentz's Parquet and CSV, Picasso's HDF5, ThunderSTORM's CSV.
+LOCALIZATION_FORMATS = ("parquet", "csv", "picasso", "thunderstorm")
 
 
 def localize_movies(
@@ -69,7 +75,7 @@ def localize_movies(
     from latentz.localization.quality import check_calibration_fits
 
     if fmt is not None:
-        check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
+        check_choice("fmt", fmt, LOCALIZATION_FORMATS)
     device = resolve_device(device)
     target = Path(out)
     if fmt is None and target.suffix.lower() == ".hdf5":
@@ -104,7 +110,8 @@ def localize_movies(
         track=track,
         device=device,
     )
-    table_path = target if fmt != "picasso" else target.with_suffix(".parquet")
+    converted = fmt in ("picasso", "thunderstorm")
+    table_path = target if not converted else target.with_name(target.stem + ".latentz.parquet")
     table = run_chunked(
         frames.shape[0],
         process,
@@ -117,6 +124,11 @@ def localize_movies(
         finish=check_calibration_fits,
     )
     check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
+    if fmt == "thunderstorm":
+        from latentz.io.thunderstorm import write_thunderstorm
+
+        table_path.unlink()
+        write_thunderstorm(table, target, pixel_size_nm=cal.camera.pixel_size_nm)
     if fmt == "picasso":
         _to_picasso(table, table_path, target, frames.shape, cal.camera.pixel_size_nm, meta)
     return table
@@ -306,7 +318,7 @@ def track_file(
     localization table, or a movie that ``calibration`` localizes."""
     import tempfile
 
-    from latentz.io import read_table, write_table
+    from latentz.io import read_localizations, write_table
 
     inputs = {"localizations": locs_path}
     for role, path in (("static", static), ("calibration", calibration)):
@@ -314,7 +326,7 @@ def track_file(
             if not Path(path).exists():
                 raise FileNotFoundError(f"No such {role} file: {path}")
             inputs[role] = path
-    locs, _ = read_table(locs_path)
+    locs, _ = read_localizations(locs_path)
     if static is not None:
         with tempfile.TemporaryDirectory() as folder:
             options["static_locs"] = _static_locs(static, calibration, Path(folder))
@@ -328,6 +340,26 @@ def track_file(
     write_table(tables["table1"].reset_index(names="dof"), paths["table1"])
     write_table(tables["motion"], paths["motion"], metadata=meta)
     return tables["motion"]
+
+
+def read_used_localizations(
+    path: str | os.PathLike, pixel_size_nm: float | None = None, *, good_only: bool = True
+) -> tuple[pd.DataFrame, str]:
+    """A localization file in any format (:func:`latentz.io.read_localizations`), its in-range
+    rows (all rows of 2D data, where none has a z), only the good ones unless ``good_only`` is
+    False, and what was dropped, in words."""
+    from latentz.io import read_localizations
+    from latentz.localization.quality import good_rows
+
+    table, _ = read_localizations(path, pixel_size_nm=pixel_size_nm)
+    if "in_range" in table and table["in_range"].any():
+        table = table[table["in_range"].astype(bool)]
+    said = ""
+    if good_only:
+        table, said = good_rows(table)
+    if table.empty:
+        raise ValueError(f"{Path(path).name} holds no in-range localizations to use.")
+    return table, said
 
 
 def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
