@@ -101,17 +101,16 @@ def block_means(frames, offset, gain, scale, factor, out):
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _row_filter(pad, weights, dst):
-    """Horizontal filter of a row padded by ``r`` edge values on each side into ``dst``, with
-    symmetric ``weights`` (2 r + 1): the taps at ``-k`` and ``+k`` share one multiply."""
+    """Horizontal filter of a row padded by ``r`` edge values on each side into ``dst``, one
+    pass per tap (pairing the symmetric taps, ``pad[j + 2 r - k]``, stops LLVM vectorising: 6x
+    slower)."""
     w = dst.shape[0]
-    r = (len(weights) - 1) // 2
-    centre = weights[r]
     for j in range(w):
-        dst[j] = centre * pad[j + r]
-    for k in range(r):
+        dst[j] = 0.0
+    for k in range(len(weights)):
         wk = weights[k]
         for j in range(w):
-            dst[j] += wk * (pad[j + k] + pad[j + 2 * r - k])
+            dst[j] += wk * pad[j + k]
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
