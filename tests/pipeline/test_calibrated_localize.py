@@ -46,3 +46,25 @@ def test_apply_warns_when_the_roi_differs(small_microscope, small_calibration):
 def test_calibration_must_be_a_calibration(small_microscope):
     with pytest.raises(TypeError, match="Calibration"):
         lz.localize(small_microscope.gear.frames[:1], calibration="cal.h5")
+
+
+def test_a_calibration_roi_larger_than_the_frames_is_one_line_with_the_fix(
+    small_microscope, small_calibration
+):
+    cal = small_calibration
+    side = cal.roi_size - 4
+    movie = small_microscope.gear.frames[:2]
+    row, col = np.unravel_index(np.argmax(movie[0]), movie.shape[1:])  # a particle's image
+    height, width = movie.shape[1:]
+    r0 = int(np.clip(row - side // 2, 0, height - side))
+    c0 = int(np.clip(col - side // 2, 0, width - side))
+    frames = movie[:, r0 : r0 + side, c0 : c0 + side]
+    with pytest.raises(ValueError) as caught:
+        lz.localize(frames, calibration=cal)
+    line = str(caught.value)
+    assert "\n" not in line
+    for part in (f"{cal.roi_size} px ROI", f"{side} x {side} px", f"roi_size={side}"):
+        assert part in line, line
+    # the way out it names works: a smaller ROI, with a warning that it is not the calibration's
+    with pytest.warns(LatentzWarning, match="ROI"):
+        lz.localize(frames, calibration=cal, roi_size=side)

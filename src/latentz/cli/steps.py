@@ -63,7 +63,7 @@ def localize_movies(
     from latentz.cli.chunked import run_chunked
     from latentz.cli.options import camera_from_options
     from latentz.io import read_stack
-    from latentz.localization import check_camera_offset, localize
+    from latentz.localization import check_camera_offset, check_roi_fits, localize
     from latentz.localization.quality import assess, check_calibration_fits
 
     if fmt is not None:
@@ -83,6 +83,7 @@ def localize_movies(
         raise ValueError("Every movie must have the same frame size.")
     frames = da.concatenate(stacks, axis=0) if len(stacks) > 1 else stacks[0]
     bounds = pd.Series([s.shape[0] for s in stacks]).cumsum().to_numpy()
+    check_roi_fits(roi_size, frames.shape[1:], cal)
     options = {
         "roi_size": roi_size,
         "threshold": threshold,

@@ -38,7 +38,7 @@ from latentz.localization.quality import assess, check_calibration_fits
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
+__all__ = ["localize", "check_camera_offset", "check_roi_fits", "LOCALIZE_COLUMNS"]
 
 #: Columns of one chunk's detections and fits, in order.
 _CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
@@ -52,6 +52,25 @@ def check_camera_offset(camera: Camera, movie: Any) -> None:
     """Warn if the camera offset (ADU) is above the median of the movie's first frame (every
     fourth pixel): an offset above most pixels means the wrong camera settings."""
     check_offset(camera.offset, float(np.median(np.asarray(movie[0][::4, ::4]))))
+
+
+def check_roi_fits(
+    roi_size: int, frame_shape: tuple[int, ...], calibration: Calibration | None = None
+) -> None:
+    """Raise one line when ``roi_size`` (pixels) is even or larger than the frames; when it is
+    the calibration's, the line names both sizes and the two ways out."""
+    largest = min(frame_shape)
+    if roi_size % 2 == 1 and roi_size <= largest:
+        return
+    fits = largest if largest % 2 else largest - 1
+    if calibration is not None and roi_size == calibration.roi_size and roi_size > largest:
+        raise ValueError(
+            f"The calibration's {roi_size} px ROI does not fit the {frame_shape[0]} x "
+            f"{frame_shape[1]} px images: recalibrate with roi_size={fits} (--roi-size {fits}; "
+            f"any odd size up to {fits} fits), or localize with roi_size={fits} and accept the "
+            "warning that z is then measured in another ROI than the calibration's."
+        )
+    raise ValueError(f"Expected `roi_size` to be odd and at most {largest}, got {roi_size}.")
 
 
 def _localize_chunk(
@@ -283,10 +302,7 @@ def localize(
         chunk_bytes = _CHUNK_BYTES * (8 if device == "cuda" else 1)
         chunk_frames = max(1, chunk_bytes // (8 * movie.shape[1] * movie.shape[2]))
     chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)
-    if roi_size % 2 == 0 or roi_size > min(movie.shape[1:]):
-        raise ValueError(
-            f"Expected `roi_size` to be odd and at most {min(movie.shape[1:])}, got {roi_size}."
-        )
+    check_roi_fits(roi_size, movie.shape[1:], calibration)
     if camera is not None and camera.flatfield is not None:
         if camera.flatfield.shape != movie.shape[1:]:
             raise ValueError(
