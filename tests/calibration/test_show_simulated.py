@@ -289,7 +289,7 @@ def test_point_emitters_are_flagged_against_a_particle_calibration(sim):
     def localized(diameter_nm):
         spots, z_true = independent_emitters(ds, rho_w, diameter_nm=diameter_nm, seed=11)
         spots = spots.drop(columns="z_nm").assign(frame=np.arange(len(spots)))
-        return assess(rho_w.apply(spots), rho_w, roi_size=ROI), z_true
+        return assess(rho_w.apply(spots), rho_w), z_true
 
     points, z_true = localized(0.0)
     err = points["z_nm"].to_numpy() - z_true

@@ -111,7 +111,7 @@ def localize_movies(
                 device=device,
             )
             spots["frame"] = spots["frame"] + start
-            located = assess(cal.apply(spots), cal, roi_size=roi_size)
+            located = assess(cal.apply(spots), cal)
         located.insert(
             1,
             "movie",

@@ -324,7 +324,7 @@ def localize(
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(table)
-    table = assess(table, calibration, roi_size=roi_size)
+    table = assess(table, calibration)
     if calibration is not None:
         table = check_calibration_fits(table)
     return table
