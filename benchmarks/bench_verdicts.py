@@ -12,13 +12,17 @@ with a true molecule within 250 nm laterally and 500 nm axially (one z offset re
 :func:`latentz.validation.challenge.correct_rows`); the truth is where the simulation put each
 molecule, never a latentz fit.
 
-For each flag: the share of the correct localizations it removes (among those no other flag
-removes, so that the shares add up to what ``good`` loses) and the share of the wrong ones; for the
-two scored flags (``consistency_chi2`` for ``inconsistent``, ``z_err_nm`` for ``out_of_range``) the
-same shares at every threshold, with the threshold in use marked. Writes
-``results/bench_verdicts.md`` and ``docs/images/single-molecules-verdicts.png``.
+For each flag: the share of the correct localizations lost when the rows it flags are dropped
+(matched afresh: a duplicate's twin may take its place) and the share of the wrong rows it
+flags; for the three scored flags (``consistency_chi2`` for ``inconsistent``, ``z_err_nm`` for
+``out_of_range``, the distance to the nearest fit for ``unresolved``) the same shares at every
+threshold, with the threshold in use marked. Then ``good``'s share of the correct localizations
+by density, and recall and RMSE of every row and of the good rows by the molecules' distance to
+the frame's edge, to their nearest neighbour, and by photons. Writes
+``results/bench_verdicts.md`` and ``docs/images/single-molecules-verdicts.png``; ``--cache``
+keeps the localizations in a pickle, so thresholds can be tried without localizing again.
 
-Run: ``python benchmarks/bench_verdicts.py [--microscopes 4] [--frames 8]``.
+Run: ``python benchmarks/bench_verdicts.py [--microscopes 4] [--frames 6] [--cache PATH]``.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from latentz.localization import quality
 from latentz.simulate.molecules import random_microscope
+from latentz.validation.challenge import offset_pairs
 from latentz.validation.molecules import bead_calibration, localized_molecules, true_positives
 
 FIGURE = Path(__file__).resolve().parents[1] / "docs" / "images" / "single-molecules-verdicts.png"
@@ -186,6 +191,45 @@ def by_density(sets: list) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
+def breakdown(sets: list, column: str, edges: tuple) -> pd.DataFrame:
+    """Recall and RMSE of every row and of the ``good`` rows, by the molecules' ``column``
+    (``edge_px``: distance to the frame's edge; ``neighbour_nm``: to the nearest other molecule
+    of the frame; ``photons``), binned at ``edges``."""
+    parts = []
+    for locs, truth in sets:
+        truth = truth.assign(edge_px=_edge_px(truth), neighbour_nm=_neighbour_nm(truth))
+        for name, rows in (("all", locs), ("good", locs[locs["good"].to_numpy(bool)])):
+            pairs = offset_pairs(truth, rows)[0].set_index("truth_row")
+            found = truth.join(pairs[["dx_nm", "dy_nm", "dz_nm"]])
+            parts.append(found.assign(rows=name))
+    table = pd.concat(parts, ignore_index=True)
+    table["bin"] = pd.cut(table[column], edges)
+    out = []
+    for (interval, name), g in table.groupby(["bin", "rows"], observed=True):
+        hit = g["dz_nm"].notna()
+        out.append({
+            column: str(interval), "rows": name, "molecules": len(g),
+            "recall": hit.mean(),
+            "lateral RMSE nm": np.sqrt(np.mean(g["dx_nm"][hit] ** 2 + g["dy_nm"][hit] ** 2)),
+            "axial RMSE nm": np.sqrt(np.mean(g["dz_nm"][hit] ** 2)),
+        })  # fmt: skip
+    return pd.DataFrame(out)
+
+
+def _edge_px(truth: pd.DataFrame) -> np.ndarray:
+    x, y = truth["x"].to_numpy(float), truth["y"].to_numpy(float)
+    return np.minimum.reduce([x + 0.5, y + 0.5, FIELD[1] - 0.5 - x, FIELD[0] - 0.5 - y])
+
+
+def _neighbour_nm(truth: pd.DataFrame) -> np.ndarray:
+    out = np.full(len(truth), np.inf)
+    for _, rows in truth.groupby("frame").indices.items():
+        if rows.size > 1:
+            points = truth[["x_nm", "y_nm"]].to_numpy(float)[rows]
+            out[rows] = cKDTree(points).query(points, k=2)[0][:, 1]
+    return out
+
+
 def localized(seeds: range, n_frames: int, cache: Path | None) -> list:
     """The sets of :func:`scored_sets`, their verdicts made afresh by the current
     :mod:`latentz.localization.quality`; with ``cache``, the localizations are read from (or
@@ -210,7 +254,7 @@ def localized(seeds: range, n_frames: int, cache: Path | None) -> list:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--microscopes", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=8)
+    parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--cache", type=Path, default=None, help="pickle of the localizations")
     args = parser.parse_args()
     started, start = machine(), time.perf_counter()
@@ -225,7 +269,14 @@ def main() -> None:
         f"{quality.CURVE_SCATTER:g}, Z_ERR_LIMIT_NM {quality.Z_ERR_LIMIT_NM:g}, UNRESOLVED_PX "
         f"{quality.UNRESOLVED_PX:g}. Took {time.perf_counter() - start:.0f} s on a loaded machine."
     )
-    table = "\n\n".join([markdown(shares), markdown(by_density(sets))])
+    tables = [markdown(shares), markdown(by_density(sets))]
+    for column, edges in (
+        ("edge_px", (0, 2, 5, 10, np.inf)),
+        ("neighbour_nm", (0, 300, 600, 1000, np.inf)),
+        ("photons", (300, 1000, 3000, 10000)),
+    ):
+        tables.append(markdown(breakdown(sets, column, edges)))
+    table = "\n\n".join(tables)
     write_results("bench_verdicts.md", "Quality verdicts against truth", started, notes, table)
     print(notes, table, sep="\n\n")
 
