@@ -192,15 +192,18 @@ def by_density(sets: list) -> pd.DataFrame:
 
 
 def breakdown(sets: list, column: str, edges: tuple) -> pd.DataFrame:
-    """Recall and RMSE of every row and of the ``good`` rows, by the molecules' ``column``
-    (``edge_px``: distance to the frame's edge; ``neighbour_nm``: to the nearest other molecule
-    of the frame; ``photons``), binned at ``edges``."""
+    """Recall, RMSE and the share of z errors within the reported 1σ, of every row and of the
+    ``good`` rows, by the molecules' ``column`` (``edge_px``: distance to the frame's edge;
+    ``neighbour_nm``: to the nearest other molecule of the frame; ``photons``), binned at
+    ``edges``."""
     parts = []
     for locs, truth in sets:
         truth = truth.assign(edge_px=_edge_px(truth), neighbour_nm=_neighbour_nm(truth))
         for name, rows in (("all", locs), ("good", locs[locs["good"].to_numpy(bool)])):
-            pairs = offset_pairs(truth, rows)[0].set_index("truth_row")
-            found = truth.join(pairs[["dx_nm", "dy_nm", "dz_nm"]])
+            pairs = offset_pairs(truth, rows)[0].join(rows["z_err_nm"], on="locs_row")
+            found = truth.join(
+                pairs.set_index("truth_row")[["dx_nm", "dy_nm", "dz_nm", "z_err_nm"]]
+            )
             parts.append(found.assign(rows=name))
     table = pd.concat(parts, ignore_index=True)
     table["bin"] = pd.cut(table[column], edges)
@@ -212,6 +215,7 @@ def breakdown(sets: list, column: str, edges: tuple) -> pd.DataFrame:
             "recall": hit.mean(),
             "lateral RMSE nm": np.sqrt(np.mean(g["dx_nm"][hit] ** 2 + g["dy_nm"][hit] ** 2)),
             "axial RMSE nm": np.sqrt(np.mean(g["dz_nm"][hit] ** 2)),
+            "z 1σ covers": np.mean(np.abs(g["dz_nm"][hit]) <= g["z_err_nm"][hit]),
         })  # fmt: skip
     return pd.DataFrame(out)
 
