@@ -39,7 +39,7 @@ from latentz.localization.quality import assess, check_calibration_fits
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
+__all__ = ["localize", "check_camera_offset", "check_roi_fits", "LOCALIZE_COLUMNS"]
 
 #: Columns of one chunk's detections and fits, in order.
 _CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
@@ -59,6 +59,25 @@ def check_camera_offset(camera: Camera, movie: Any) -> None:
     if isinstance(sample, da.Array):
         sample = sample.compute(scheduler="synchronous")
     check_offset(camera.offset, float(np.median(np.asarray(sample))))
+
+
+def check_roi_fits(
+    roi_size: int, frame_shape: tuple[int, ...], calibration: Calibration | None = None
+) -> None:
+    """Raise one line when ``roi_size`` (pixels) is even or larger than the frames; when it is
+    the calibration's, the line names both sizes and the two ways out."""
+    largest = min(frame_shape)
+    if roi_size % 2 == 1 and roi_size <= largest:
+        return
+    fits = largest if largest % 2 else largest - 1
+    if calibration is not None and roi_size == calibration.roi_size and roi_size > largest:
+        raise ValueError(
+            f"The calibration's {roi_size} px ROI does not fit the {frame_shape[0]} x "
+            f"{frame_shape[1]} px images: recalibrate with roi_size={fits} (--roi-size {fits}; "
+            f"any odd size up to {fits} fits), or localize with roi_size={fits} and accept the "
+            "warning that z is then measured in another ROI than the calibration's."
+        )
+    raise ValueError(f"Expected `roi_size` to be odd and at most {largest}, got {roi_size}.")
 
 
 def _localize_chunk(
@@ -240,12 +259,11 @@ def _chunk_frames(
     return check_int("chunk_frames", chunk_frames, minimum=1)
 
 
-def _check_frames(shape: tuple[int, ...], camera: Camera | None, roi_size: int) -> None:
+def _check_frames(
+    shape: tuple[int, ...], camera: Camera | None, roi_size: int, calibration: Calibration | None
+) -> None:
     """Refuse an even ROI or one larger than the frames, and a flatfield of another size."""
-    if roi_size % 2 == 0 or roi_size > min(shape[1:]):
-        raise ValueError(
-            f"Expected `roi_size` to be odd and at most {min(shape[1:])}, got {roi_size}."
-        )
+    check_roi_fits(roi_size, shape[1:], calibration)
     if camera is not None and camera.flatfield is not None:
         if camera.flatfield.shape != shape[1:]:
             raise ValueError(
@@ -336,7 +354,7 @@ def localize(
     if camera is not None:
         check_camera_offset(camera, movie)
     chunk_frames = _chunk_frames(chunk_frames, device, movie.shape, movie.dtype.itemsize)
-    _check_frames(movie.shape, camera, roi_size)
+    _check_frames(movie.shape, camera, roi_size, calibration)
     options = (camera, roi_size, threshold, method, sigma, device)
     if track:
         detect_every = check_int("detect_every", detect_every, minimum=1)
@@ -352,7 +370,7 @@ def localize(
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(table)
-    table = assess(table, calibration, roi_size=roi_size)
+    table = assess(table, calibration)
     if calibration is not None:
         table = check_calibration_fits(table)
     return table
