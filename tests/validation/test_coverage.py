@@ -76,13 +76,14 @@ def simulator_errors():
     return errors[errors["in_range"]]
 
 
-#: Known miss, measured and bounded, see docs/accuracy.md: x on latentz's simulator is
-#: over-covered, 75.7 % of 268 spots against the 75.6 % that this sample allows (reported RMS
-#: 1.40 nm against an actual 1.18 nm). Near focus the nearest particle's polynomial error and
-#: the lateral lack of fit are both added (0.61 and 0.54 nm), where these bright test beads err
-#: by 0.57 nm beyond their fit. On the full-size simulator (4,932 spots) x is covered 66.7 %.
-#: Its coverage may exceed the band by at most this much (3 %: the measured excess is 0.1 %;
-#: at 78.6 % the reported σ would be ~1.3x the actual errors), never fall below it.
+#: Known miss, measured and bounded, see docs/validation.md ("Known limits"): x on latentz's
+#: simulator is over-covered, 75.7 % of 268 spots against the 75.6 % that this sample allows
+#: (reported RMS 1.40 nm against an actual 1.18 nm). Near focus the nearest particle's
+#: polynomial error and the lateral lack of fit are both added (0.61 and 0.54 nm), where these
+#: bright test beads err by 0.57 nm beyond their fit. On the full-size simulator (4,932 spots)
+#: x is covered 66.7 %. Its coverage may exceed the band by at most this much (3 %: the
+#: measured excess is 0.1 %; at 78.6 % the reported σ would be ~1.3x the actual errors), never
+#: fall below it.
 OVER_COVERAGE = {("simulator_errors", "x"): 0.03}
 CASES = [(e, a) for e in ("validation_errors", "simulator_errors") for a in "xyz"]
 
