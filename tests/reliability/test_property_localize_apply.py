@@ -95,6 +95,21 @@ def test_apply_flags_what_it_cannot_localize(cal, rows):
     assert (out["z_nm"][ok].between(np.nanmin(span) - 1e-6, np.nanmax(span) + 1e-6)).all()
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+@pytest.mark.parametrize("column", ["x", "y", "amplitude", "wx", "wy", "rho"])
+def test_apply_never_places_a_spot_with_a_non_finite_fit_value(cal, column, value):
+    """Whether or not the shape uses it (``auto`` ignores the amplitude), a non-finite value is
+    a broken fit: the spot is out of range, with no position."""
+    spot = pd.DataFrame(dict(x=[100.0], y=[100.0], amplitude=[5e3], wx=[1.5], wy=[1.5], rho=[0.0]))
+    assert cal.apply(spot)["in_range"].all()  # the spot as fitted is placed
+    spot[column] = value
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = cal.apply(spot)
+    assert not out["in_range"].any()
+    assert out[["x_nm", "y_nm", "z_nm"]].isna().all(axis=None)
+
+
 def test_apply_refuses_tables_without_the_shape_columns(cal):
     with pytest.raises(ValueError, match="missing column"):
         cal.apply(pd.DataFrame({"x": [1.0], "y": [1.0]}))
