@@ -46,3 +46,23 @@ def test_apply_warns_when_the_roi_differs(small_microscope, small_calibration):
 def test_calibration_must_be_a_calibration(small_microscope):
     with pytest.raises(TypeError, match="Calibration"):
         lz.localize(small_microscope.gear.frames[:1], calibration="cal.h5")
+
+
+@pytest.mark.slow
+def test_process_cluster_with_a_camera_and_a_calibration_gives_the_local_table(
+    small_microscope, small_calibration
+):
+    # a TIFF path on worker processes: nothing may be computed through the client before the
+    # tasks are built from the path (the lazy reader holds a lock that cannot be pickled)
+    distributed = pytest.importorskip("distributed")
+    path = small_microscope.folder / "movie.tif"
+    local = lz.localize(path, calibration=small_calibration, chunk_frames=2)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        remote = lz.localize(path, calibration=small_calibration, scheduler=client, chunk_frames=2)
+    assert len(local) > 0 and local["good"].any()
+    pd.testing.assert_frame_equal(remote, local)
