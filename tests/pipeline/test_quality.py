@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, smlm_beads
+from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, score_z, smlm_beads
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
@@ -67,11 +67,13 @@ def test_own_calibration_fits_the_even_planes():
     checked = locs[np.isfinite(locs["consistency_chi2"]) & ~locs["duplicate"]]
     # χ² at its 99.9 % point: on ~100 spots a few flags at most are chance
     assert checked["inconsistent"].mean() <= 0.05
-    # good spots lie where the calibration measures z well, and there z is right
+    # good spots lie where the calibration measures z well, and there z is right: against the
+    # piezo z of these planes (never seen by the calibration), less one offset (latentz's z = 0
+    # is the bead's focus), within 2x the measured plane-to-plane precision (3.6 / 3.3 nm)
     good = locs[locs["good"]]
-    true_z = z[0::2][good["frame"].to_numpy()] - cal.particles["z_f"].iloc[0]
     assert len(good) >= 30
-    assert np.sqrt(np.mean((good["z_nm"] - true_z) ** 2)) <= 10.0
+    score = score_z(good["z_nm"], z[0::2][good["frame"].to_numpy()])
+    assert score["rms"] <= 2 * score["jitter"], score
 
 
 @pytest.fixture(scope="module")
