@@ -17,9 +17,9 @@ Cases, all with a camera (offset 100 ADU, gain 1, read noise 1.5 e-):
         [--cases 30 30-tiff 500 calibrated tracking fit_rois]
 
 ``--before`` is the ``src`` folder of the tree to compare with, for example
-``git archive main src | tar -x -C /tmp/before``. Writes ``results/bench_camera_rate.md``
-(``bench_camera_rate_<cases>.md`` for a subset of the cases): frames/s as the median (min-max)
-over the rounds of each tree, and the ratio of the medians.
+``git archive main src | tar -x -C /tmp/before``. Writes one results file per set of cases,
+``bench_camera_rate_<cases>.md`` beside the other results: frames/s as the median (min-max) over
+the rounds of each tree, and the ratio of the medians.
 """
 
 from __future__ import annotations
