@@ -1,0 +1,175 @@
+"""Close pairs: where one emitter's fit is shaped beyond one emitter, fit two and keep both.
+
+Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
+whose shape is beyond what one emitter looks like is a candidate:
+
+- with a calibration, the calibration does not locate it or its widths and ρ lie far from the
+  curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
+- without one, its long-axis width exceeds that of the chunk's isolated fits (no other
+  detection in the ROI) by more than :data:`WIDTH_MADS` robust standard deviations (1.4826 MAD)
+  above their median: nothing else says how wide one emitter is.
+
+Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`. Its two emitters replace the
+one-emitter row when the second emitter is significant (:func:`latentz.fit.pairs.is_split`) and
+each looks like one emitter: located and consistent with the calibration, or no wider than
+that limit. Both rows carry the same ``pair`` number. A
+candidate that is not split stays one row, marked ``merged`` (an overlap the two-emitter fit
+cannot resolve, which :func:`.quality.assess` flags ``unresolved``) where there is evidence of a
+second emitter: its width without a calibration; with one, a second emitter significant in the
+likelihood (a calibration's ``out_of_range`` and ``inconsistent`` rows are also dim or distant
+single emitters, and stay flagged as such). Only candidates are fitted twice, so ordinary spots
+cost nothing more.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+
+from latentz.fit._model import PARAMS, photons_of
+from latentz.fit.api import ERROR_COLUMNS, FIT_COLUMNS
+from latentz.fit.pairs import LR_LIMIT, PairFit, fit_pairs, is_split
+from latentz.localization.quality import assess
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
+
+__all__ = ["split_pairs", "PAIR_COLUMNS", "WIDTH_MADS"]
+
+#: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
+PAIR_COLUMNS = ("pair", "merged")
+#: Without a calibration, a fit whose long-axis width lies this many robust standard deviations
+#: above the median of the chunk's isolated fits is wider than one emitter.
+WIDTH_MADS = 5.0
+
+
+def long_axis_width(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Standard deviation (pixels) along the long axis of eq. 1's ellipse."""
+    mean, half = (wx**2 + wy**2) / 2, (wx**2 - wy**2) / 2
+    return np.sqrt(mean + np.sqrt(half**2 + (rho * wx * wy) ** 2))
+
+
+def _width(table: pd.DataFrame) -> np.ndarray:
+    return long_axis_width(*(table[c].to_numpy(float) for c in ("wx", "wy", "rho")))
+
+
+def _width_limit(table: pd.DataFrame) -> float:
+    """Long-axis width (pixels) beyond one emitter's, from the table's isolated fits: their
+    median plus :data:`WIDTH_MADS` robust standard deviations (infinite with no such fit)."""
+    isolated = table["converged"].to_numpy(bool) & ~table["close_pair"].to_numpy(bool)
+    width = _width(table)[isolated]
+    width = width[np.isfinite(width)]
+    if width.size == 0:
+        return np.inf
+    median = float(np.median(width))
+    return median + WIDTH_MADS * 1.4826 * float(np.median(np.abs(width - median)))
+
+
+def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.DataFrame:
+    """``table``'s quality flags (:func:`.quality.assess`), after the calibration locates it."""
+    if calibration is None:
+        return assess(table)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # localize applies the calibration again, and warns there
+        return assess(calibration.apply(table), calibration)
+
+
+def _beyond(table: pd.DataFrame, calibration: Calibration | None, limit: float) -> np.ndarray:
+    """Which rows are shaped beyond one emitter (see the module docstring)."""
+    finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
+    if calibration is None:
+        with np.errstate(invalid="ignore"):
+            return finite & (_width(table) > limit)
+    flags = _one_emitter(table, calibration)
+    return finite & (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+
+
+def _look_like_one(
+    members: pd.DataFrame, calibration: Calibration | None, limit: float
+) -> np.ndarray:
+    """Which member rows look like one emitter: located and consistent, or narrow enough."""
+    if calibration is None:
+        return _width(members) <= limit
+    flags = _one_emitter(members, calibration)
+    return ~(flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+
+
+def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.DataFrame:
+    """Two rows per row of ``rows`` (emitter 0 then 1), in full-frame pixels (ROI corners
+    ``corner``, (n, 2) as x, y), with the two-emitter fit's values and bounds."""
+    n = len(rows)
+    members = rows.loc[rows.index.repeat(2)].reset_index(drop=True)
+    params = fit.params.reshape(2 * n, len(PARAMS)).copy()
+    params[:, :2] += np.repeat(corner, 2, axis=0)
+    for k, name in enumerate(PARAMS):
+        members[name] = params[:, k]
+    members["photons"] = photons_of(params[:, 2], params[:, 4], params[:, 5], params[:, 6])
+    errors = fit.errors.reshape(2 * n, len(PARAMS))
+    for k, name in enumerate(ERROR_COLUMNS):
+        members[name] = errors[:, k]
+    for name, values in (("loglik", fit.loglik), ("chi2", fit.chi2),
+                         ("iterations", fit.iterations), ("converged", fit.converged)):  # fmt: skip
+        members[name] = np.repeat(values, 2)
+    for name in FIT_COLUMNS[FIT_COLUMNS.index("converged") + 1 :]:
+        members[name] = np.nan  # Cramér–Rao errors: no sandwich correlations
+    return members
+
+
+def split_pairs(
+    table: pd.DataFrame,
+    rois: np.ndarray,
+    corner: np.ndarray,
+    *,
+    readnoise: float,
+    calibration: Calibration | None = None,
+) -> pd.DataFrame:
+    """One chunk's one-emitter rows with each resolved close pair as two rows.
+
+    Parameters
+    ----------
+    table : DataFrame
+        One row per ROI: ``frame``, the columns of :func:`latentz.fit.fit_rois` in full-frame
+        pixels, and any further columns (copied to both rows of a pair).
+    rois : ndarray (n, h, w)
+        The ROIs the rows were fitted in, photoelectrons.
+    corner : ndarray (n, 2)
+        Each ROI's first column and row in the frame (pixels).
+    readnoise : float
+        Read-noise standard deviation in photoelectrons.
+    calibration : Calibration, optional
+        Says what one emitter looks like; without it, the chunk's own fits do.
+
+    Returns
+    -------
+    DataFrame
+        ``table`` with `PAIR_COLUMNS`, rows ordered by frame (see the module docstring).
+    """
+    table = table.reset_index(drop=True).assign(pair=-1, merged=False)
+    limit = _width_limit(table)
+    candidates = np.flatnonzero(_beyond(table, calibration, limit))
+    if candidates.size == 0:
+        return table
+    local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
+    local[:, :2] -= corner[candidates]
+    fit = fit_pairs(rois[candidates], local, readnoise=readnoise)
+    proposed = is_split(fit, rois.shape[1:])
+    with np.errstate(invalid="ignore"):  # without a calibration the width is the evidence
+        table.loc[candidates, "merged"] = (fit.ratio > LR_LIMIT) | (calibration is None)
+    members = _member_rows(table.loc[candidates[proposed]], _take(fit, proposed),
+                           corner[candidates[proposed]])  # fmt: skip
+    members["pair"] = np.repeat(candidates[proposed], 2)
+    members["merged"] = False
+    members.attrs = table.attrs
+    one = _look_like_one(members, calibration, limit)
+    kept = one[0::2] & one[1::2]
+    keep_rows = np.ones(len(table), bool)
+    keep_rows[candidates[proposed][kept]] = False
+    out = pd.concat([table[keep_rows], members[np.repeat(kept, 2)]], ignore_index=True)
+    return out.sort_values("frame", kind="stable", ignore_index=True)
+
+
+def _take(fit: PairFit, rows: np.ndarray) -> PairFit:
+    return PairFit(*(field[rows] for field in fit))
