@@ -43,6 +43,7 @@ MIN_SHARE = 0.1
 MIN_SEPARATION_PX = 1.0
 _N = 2 * 6 + 1  # per emitter x, y, A, log wx, log wy, atanh rho; then the shared background
 _W_MIN, _RHO_MAX = 0.3, 0.95
+_BATCH = 128  # ROIs fitted at once: bounds the Jacobians' memory (2 starts x 128 x p x 13)
 
 
 class PairFit(NamedTuple):
@@ -261,14 +262,24 @@ def fit_pairs(
     -------
     PairFit
     """
-    rois = np.asarray(rois, dtype=np.float64)
+    rois, one = np.asarray(rois, dtype=np.float64), np.asarray(one, dtype=np.float64)
+    parts = [
+        _fit_batch(rois[k : k + _BATCH], one[k : k + _BATCH], float(readnoise) ** 2, max_iter, tol)
+        for k in range(0, len(rois), _BATCH)
+    ]
+    if not parts:
+        return PairFit(*(np.zeros((0, *shape)) for shape in ((2, N_PARAMS), (2, N_PARAMS), (), (),
+                                                               (), (), ())))  # fmt: skip
+    return PairFit(*(np.concatenate(field) for field in zip(*parts, strict=True)))
+
+
+def _fit_batch(rois: np.ndarray, one: np.ndarray, s2: float, max_iter: int, tol: float) -> PairFit:
+    """`fit_pairs` of one batch of ROIs (n, h, w) with read-noise variance ``s2``."""
     n, h, w = rois.shape
-    s2 = float(readnoise) ** 2
     data = rois.reshape(n, -1)
     theta, loglik, stopped, iterations = _levenberg_marquardt(
-        np.concatenate([data, data]), _starts(rois, np.asarray(one, float), s2), (h, w), s2,
-        max_iter, tol,
-    )  # fmt: skip
+        np.concatenate([data, data]), _starts(rois, one, s2), (h, w), s2, max_iter, tol
+    )
     best = np.where(loglik[n:] > loglik[:n], np.arange(n) + n, np.arange(n))
     best = np.where(np.isfinite(loglik[best]), best, np.arange(n))
     theta, loglik, stopped = theta[best], loglik[best], stopped[best]
@@ -278,8 +289,7 @@ def fit_pairs(
     inside = np.all((theta[:, shape] > lo[shape] + 1e-6) & (theta[:, shape] < hi[shape] - 1e-6), 1)
     grid = tuple(g.ravel().astype(float) for g in np.indices((h, w))[::-1])
     mu = _model(theta, grid)[0]
-    single = _loglik(data, model_and_jacobian(np.asarray(one, float), (h, w), jacobian=False)[0],
-                     s2)  # fmt: skip
+    single = _loglik(data, model_and_jacobian(one, (h, w), jacobian=False)[0], s2)
     constant = np.sum(gammaln(np.maximum(data + s2, 0.0) + 1.0), axis=1)
     return PairFit(
         params, errors, loglik - constant, np.sum((data - mu) ** 2 / np.maximum(mu + s2, 1e-12), 1),

@@ -11,14 +11,14 @@ whose shape is beyond what one emitter looks like is a candidate:
 
 Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`. Its two emitters replace the
 one-emitter row when the second emitter is significant (:func:`latentz.fit.pairs.is_split`) and
-each looks like one emitter: located and consistent with the calibration, or no wider than
-that limit. Both rows carry the same ``pair`` number. A
-candidate that is not split stays one row, marked ``merged`` (an overlap the two-emitter fit
-cannot resolve, which :func:`.quality.assess` flags ``unresolved``) where there is evidence of a
-second emitter: its width without a calibration; with one, a second emitter significant in the
-likelihood (a calibration's ``out_of_range`` and ``inconsistent`` rows are also dim or distant
-single emitters, and stay flagged as such). Only candidates are fitted twice, so ordinary spots
-cost nothing more.
+each looks like one emitter (located and consistent with the calibration, or no wider than
+that limit), unless either lies on another detection's fit (a neighbour detected by itself).
+Both rows carry the same ``pair`` number. A candidate that is not split stays one row, marked
+``merged`` (an overlap the two-emitter fit cannot resolve, which :func:`.quality.assess` flags
+``unresolved``) where there is evidence of a second emitter: its width without a calibration;
+with one, a second emitter significant in the likelihood (a calibration's ``out_of_range`` and
+``inconsistent`` rows are also dim or distant single emitters, and stay flagged as such). Only
+candidates are fitted twice, so ordinary spots cost nothing more.
 """
 
 from __future__ import annotations
@@ -28,11 +28,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+from scipy.spatial import cKDTree
 
 from latentz.fit._model import PARAMS, photons_of
 from latentz.fit.api import ERROR_COLUMNS, FIT_COLUMNS
 from latentz.fit.pairs import LR_LIMIT, PairFit, fit_pairs, is_split
-from latentz.localization.quality import assess
+from latentz.localization.quality import DUPLICATE_PX, assess
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -164,11 +165,28 @@ def split_pairs(
     members["merged"] = False
     members.attrs = table.attrs
     one = _look_like_one(members, calibration, limit)
-    kept = one[0::2] & one[1::2]
+    detected = _detected_apart(table, members)
+    kept = one[0::2] & one[1::2] & ~detected
+    table.loc[candidates[proposed][detected], "merged"] = False
     keep_rows = np.ones(len(table), bool)
     keep_rows[candidates[proposed][kept]] = False
     out = pd.concat([table[keep_rows], members[np.repeat(kept, 2)]], ignore_index=True)
     return out.sort_values("frame", kind="stable", ignore_index=True)
+
+
+def _detected_apart(table: pd.DataFrame, members: pd.DataFrame) -> np.ndarray:
+    """For each pair of ``members`` (rows 2k, 2k + 1), whether either emitter is within
+    `DUPLICATE_PX` of another detection's fit in its frame (not the pair's own row
+    ``table.loc[pair]``): the ROI held a neighbour that was detected and fitted by itself."""
+    near = np.zeros(len(members), bool)
+    for frame, rows in members.groupby("frame").indices.items():
+        others = table[(table["frame"] == frame).to_numpy()]
+        others = others.drop(index=members["pair"].to_numpy()[rows], errors="ignore")
+        if len(others) == 0:
+            continue
+        tree = cKDTree(others[["x", "y"]].to_numpy(float))
+        near[rows] = tree.query(members[["x", "y"]].to_numpy(float)[rows])[0] < DUPLICATE_PX
+    return near[0::2] | near[1::2]
 
 
 def _take(fit: PairFit, rows: np.ndarray) -> PairFit:
