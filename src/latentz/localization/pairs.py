@@ -1,7 +1,8 @@
 """Close pairs: where one emitter's fit is shaped beyond one emitter, fit two and keep both.
 
 Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
-whose shape is beyond what one emitter looks like is a candidate:
+that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
+freedom) and shaped beyond what one emitter looks like is a candidate:
 
 - with a calibration, the calibration does not locate it or its widths and ρ lie far from the
   curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
@@ -38,13 +39,17 @@ from latentz.localization.quality import DUPLICATE_PX, assess
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["split_pairs", "PAIR_COLUMNS", "WIDTH_MADS"]
+__all__ = ["split_pairs", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
 
 #: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
 PAIR_COLUMNS = ("pair", "merged")
 #: Without a calibration, a fit whose long-axis width lies this many robust standard deviations
 #: above the median of the chunk's isolated fits is wider than one emitter.
 WIDTH_MADS = 5.0
+#: A one-emitter fit whose Pearson chi-square exceeds its degrees of freedom (pixels − 7) by
+#: this many of its standard deviations fits poorly: only those can hold two emitters.
+CHI2_SDS = 3.0
+_FRAME_GAP = 1e4  # pixels between frames in `_points`
 
 
 def long_axis_width(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -78,14 +83,23 @@ def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.Dat
         return assess(calibration.apply(table), calibration)
 
 
-def _beyond(table: pd.DataFrame, calibration: Calibration | None, limit: float) -> np.ndarray:
-    """Which rows are shaped beyond one emitter (see the module docstring)."""
+def _beyond(
+    table: pd.DataFrame, calibration: Calibration | None, limit: float, pixels: int
+) -> np.ndarray:
+    """Which rows, fitted in ROIs of ``pixels`` pixels, fit poorly and are shaped beyond one
+    emitter (see the module docstring); the calibration is applied to the poor fits only."""
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
+    dof = pixels - len(PARAMS)
+    with np.errstate(invalid="ignore"):
+        poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
     if calibration is None:
         with np.errstate(invalid="ignore"):
-            return finite & (_width(table) > limit)
-    flags = _one_emitter(table, calibration)
-    return finite & (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+            return poor & (_width(table) > limit)
+    beyond = np.zeros(len(table), bool)
+    if poor.any():
+        flags = _one_emitter(table[poor], calibration)
+        beyond[poor] = (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+    return beyond
 
 
 def _look_like_one(
@@ -150,7 +164,9 @@ def split_pairs(
     """
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
     limit = _width_limit(table)
-    candidates = np.flatnonzero(_beyond(table, calibration, limit))
+    candidates = np.flatnonzero(
+        _beyond(table, calibration, limit, rois[0].size if len(rois) else 0)
+    )
     if candidates.size == 0:
         return table
     local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
@@ -178,15 +194,20 @@ def _detected_apart(table: pd.DataFrame, members: pd.DataFrame) -> np.ndarray:
     """For each pair of ``members`` (rows 2k, 2k + 1), whether either emitter is within
     `DUPLICATE_PX` of another detection's fit in its frame (not the pair's own row
     ``table.loc[pair]``): the ROI held a neighbour that was detected and fitted by itself."""
-    near = np.zeros(len(members), bool)
-    for frame, rows in members.groupby("frame").indices.items():
-        others = table[(table["frame"] == frame).to_numpy()]
-        others = others.drop(index=members["pair"].to_numpy()[rows], errors="ignore")
-        if len(others) == 0:
-            continue
-        tree = cKDTree(others[["x", "y"]].to_numpy(float))
-        near[rows] = tree.query(members[["x", "y"]].to_numpy(float)[rows])[0] < DUPLICATE_PX
+    if len(members) == 0:
+        return np.zeros(0, bool)
+    distance, index = cKDTree(_points(table)).query(_points(members), k=2)
+    own = members["pair"].to_numpy()[:, None]
+    other = np.where(index[:, :1] == own, distance[:, 1:], distance[:, :1])[:, 0]
+    near = other < DUPLICATE_PX
     return near[0::2] | near[1::2]
+
+
+def _points(rows: pd.DataFrame) -> np.ndarray:
+    """x, y (pixels) and the frame times `_FRAME_GAP`: rows of other frames never within
+    reach; a position that is not finite lies far from all."""
+    points = rows[["x", "y", "frame"]].to_numpy(float) * [1.0, 1.0, _FRAME_GAP]
+    return np.nan_to_num(points, nan=-1e12, posinf=-1e12, neginf=-1e12)
 
 
 def _take(fit: PairFit, rows: np.ndarray) -> PairFit:
