@@ -14,12 +14,12 @@ Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`. Its two emitters
 one-emitter row when the second emitter is significant (:func:`latentz.fit.pairs.is_split`) and
 each looks like one emitter (located and consistent with the calibration, or no wider than
 that limit), unless either lies on another detection's fit (a neighbour detected by itself).
-Both rows carry the same ``pair`` number. A candidate that is not split stays one row, marked
-``merged`` (an overlap the two-emitter fit cannot resolve, which :func:`.quality.assess` flags
-``unresolved``) where there is evidence of a second emitter: its width without a calibration;
-with one, a second emitter significant in the likelihood (a calibration's ``out_of_range`` and
-``inconsistent`` rows are also dim or distant single emitters, and stay flagged as such). Only
-candidates are fitted twice, so ordinary spots cost nothing more.
+Both rows carry the same ``pair`` number. A candidate that is not split stays one row: an overlap
+the two-emitter fit cannot resolve. Without a calibration it is marked ``merged``, which
+:func:`.quality.assess` flags ``unresolved``; with one, it is already ``out_of_range`` or
+``inconsistent``, the flags that made it a candidate (and that dim or distant single emitters
+carry too, so ``unresolved`` is not added). Only candidates are fitted twice, so ordinary spots
+cost nothing more.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from latentz.fit._model import PARAMS, photons_of
 from latentz.fit.api import ERROR_COLUMNS, FIT_COLUMNS
-from latentz.fit.pairs import LR_LIMIT, PairFit, fit_pairs, is_split
+from latentz.fit.pairs import PairFit, fit_pairs, is_split
 from latentz.localization.quality import DUPLICATE_PX, assess
 
 if TYPE_CHECKING:
@@ -173,8 +173,8 @@ def split_pairs(
     local[:, :2] -= corner[candidates]
     fit = fit_pairs(rois[candidates], local, readnoise=readnoise)
     proposed = is_split(fit, rois.shape[1:])
-    with np.errstate(invalid="ignore"):  # without a calibration the width is the evidence
-        table.loc[candidates, "merged"] = (fit.ratio > LR_LIMIT) | (calibration is None)
+    # without a calibration the width is the evidence; with one, the flags that made a candidate
+    table.loc[candidates, "merged"] = calibration is None
     members = _member_rows(table.loc[candidates[proposed]], _take(fit, proposed),
                            corner[candidates[proposed]])  # fmt: skip
     members["pair"] = np.repeat(candidates[proposed], 2)
