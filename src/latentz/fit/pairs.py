@@ -11,7 +11,7 @@ brightest peaks; the start that ends with the higher likelihood wins.
 does, when it raises the likelihood significantly: the likelihood ratio ``2 (l_2 - l_1)`` above
 :data:`LR_LIMIT`, with each emitter holding at least :data:`MIN_SHARE` of the pair's photons,
 the two at least :data:`MIN_SEPARATION_PX` apart and both inside the ROI. Errors are the
-Cramér–Rao bounds of the 13-parameter model.
+Cramér–Rao bounds of the 13-parameter model, or its sandwich covariance.
 
 A real PSF is not the Gaussian of eq. 1, and a second Gaussian always takes up part of the
 difference: on simulated pupil-function PSFs the ratio of isolated emitters reaches several
@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaln
 
+from latentz._shared.validate import check_choice
 from latentz.fit._model import N_PARAMS, model_and_jacobian, photons_of
 
 __all__ = ["PairFit", "fit_pairs", "is_split", "LR_LIMIT", "MIN_SHARE", "MIN_SEPARATION_PX"]
@@ -55,7 +56,8 @@ class PairFit(NamedTuple):
         Each emitter's natural parameters (`latentz.fit.PARAMS`: x, y in ROI pixels, amplitude,
         the shared background, wx, wy in pixels, ρ).
     errors : ndarray (n, 2, 7)
-        Their Cramér–Rao bounds in the two-emitter model; NaN where its information is singular.
+        Their standard deviations in the two-emitter model (`fit_pairs`' ``errors``); NaN where
+        its information is singular.
     loglik : ndarray (n,)
         Log-likelihood of the two-emitter fit, as `latentz.fit.FitResult.loglik`.
     chi2 : ndarray (n,)
@@ -212,17 +214,28 @@ def _levenberg_marquardt(
     return theta, loglik, converged, iterations
 
 
-def _natural(theta: np.ndarray, shape: tuple[int, int], s2: float) -> tuple[np.ndarray, ...]:
-    """Natural parameters (n, 2, 7), their Cramér–Rao bounds (n, 2, 7) and whether the
-    information was invertible (n,), at internal parameters ``theta`` (n, 13)."""
+def _natural(
+    theta: np.ndarray, data: np.ndarray, shape: tuple[int, int], s2: float, sandwich: bool
+) -> tuple[np.ndarray, ...]:
+    """Natural parameters (n, 2, 7), their standard deviations (n, 2, 7) and whether the
+    information was invertible (n,), at internal parameters ``theta`` (n, 13) fitted to
+    ``data`` (n, p): the Cramér–Rao bounds, or with ``sandwich`` the covariance of a
+    misspecified fit, ``I⁻¹ (Σ J Jᵀ (d − mu)² / (mu + s²)²) I⁻¹`` times ``p / (p − 13)`` for
+    the residuals' lost degrees of freedom (the bound on average where the model is right)."""
     grid = tuple(g.ravel().astype(float) for g in np.indices(shape)[::-1])
     mu, jac = _model(theta, grid)
-    info = np.einsum("npk,npl->nkl", jac / np.maximum(mu + s2, 1e-12)[:, :, None], jac)
+    m = np.maximum(mu + s2, 1e-12)
+    info = np.matmul((jac / m[:, :, None]).transpose(0, 2, 1), jac)
     usable = np.isfinite(info).all(axis=(1, 2))
     usable[usable] = np.linalg.cond(info[usable]) < 1e12
-    var = np.full((len(theta), _N), np.nan)
-    var[usable] = np.diagonal(np.linalg.inv(info[usable]), 0, 1, 2)
-    sd = np.sqrt(np.maximum(var, 0.0))
+    cov = np.full((len(theta), _N, _N), np.nan)
+    cov[usable] = np.linalg.inv(info[usable])
+    if sandwich:
+        scaled = jac * ((data - mu) / m)[:, :, None]
+        # residuals of a fit are smaller than the noise by the parameters they took up: p/(p−13)
+        meat = np.matmul(scaled.transpose(0, 2, 1), scaled) * (data.shape[1] / (data.shape[1] - _N))
+        cov[usable] = cov[usable] @ meat[usable] @ cov[usable]
+    sd = np.sqrt(np.maximum(np.diagonal(cov, 0, 1, 2), 0.0))
     params, errors = np.empty((len(theta), 2, N_PARAMS)), np.empty((len(theta), 2, N_PARAMS))
     for e, k in enumerate((0, 6)):
         wx, wy, rho = np.exp(theta[:, k + 3]), np.exp(theta[:, k + 4]), np.tanh(theta[:, k + 5])
@@ -241,6 +254,7 @@ def fit_pairs(
     readnoise: float = 0.0,
     max_iter: int = 50,
     tol: float = 0.1,
+    errors: str = "crlb",
 ) -> PairFit:
     """Fit two Gaussians of eq. 1 over one background to each ROI, starting from its
     one-emitter fit.
@@ -256,14 +270,20 @@ def fit_pairs(
         Read-noise standard deviation in photoelectrons.
     max_iter, tol : int, float
         Iterations per start, and the stop within ``tol`` Cramér–Rao bounds of the optimum.
+    errors : {"crlb", "sandwich"}
+        ``"crlb"``: the Cramér–Rao bounds of the two-emitter model, exact for Gaussian spots.
+        ``"sandwich"``: the covariance of a misspecified fit, which holds the scatter where a
+        real PSF is fitted with Gaussians (as `latentz.fit.fit_arrays` ``errors="sandwich"``).
 
     Returns
     -------
     PairFit
     """
     rois, one = np.asarray(rois, dtype=np.float64), np.asarray(one, dtype=np.float64)
+    sandwich = check_choice("errors", errors, ("crlb", "sandwich")) == "sandwich"
+    s2 = float(readnoise) ** 2
     parts = [
-        _fit_batch(rois[k : k + _BATCH], one[k : k + _BATCH], float(readnoise) ** 2, max_iter, tol)
+        _fit_batch(rois[k : k + _BATCH], one[k : k + _BATCH], s2, max_iter, tol, sandwich)
         for k in range(0, len(rois), _BATCH)
     ]
     if not parts:
@@ -272,7 +292,9 @@ def fit_pairs(
     return PairFit(*(np.concatenate(field) for field in zip(*parts, strict=True)))
 
 
-def _fit_batch(rois: np.ndarray, one: np.ndarray, s2: float, max_iter: int, tol: float) -> PairFit:
+def _fit_batch(
+    rois: np.ndarray, one: np.ndarray, s2: float, max_iter: int, tol: float, sandwich: bool
+) -> PairFit:
     """`fit_pairs` of one batch of ROIs (n, h, w) with read-noise variance ``s2``."""
     n, h, w = rois.shape
     data = rois.reshape(n, -1)
@@ -282,7 +304,7 @@ def _fit_batch(rois: np.ndarray, one: np.ndarray, s2: float, max_iter: int, tol:
     best = np.where(loglik[n:] > loglik[:n], np.arange(n) + n, np.arange(n))
     best = np.where(np.isfinite(loglik[best]), best, np.arange(n))
     theta, loglik, stopped = theta[best], loglik[best], stopped[best]
-    params, errors, usable = _natural(theta, (h, w), s2)
+    params, errors, usable = _natural(theta, data, (h, w), s2, sandwich)
     lo, hi = _bounds((h, w), s2)
     shape = [3, 4, 5, 9, 10, 11]  # log widths and atanh rho of both emitters
     inside = np.all((theta[:, shape] > lo[shape] + 1e-6) & (theta[:, shape] < hi[shape] - 1e-6), 1)

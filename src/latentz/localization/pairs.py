@@ -114,7 +114,7 @@ def _look_like_one(
 
 def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.DataFrame:
     """Two rows per row of ``rows`` (emitter 0 then 1), in full-frame pixels (ROI corners
-    ``corner``, (n, 2) as x, y), with the two-emitter fit's values and bounds."""
+    ``corner``, (n, 2) as x, y), with the two-emitter fit's values and errors."""
     n = len(rows)
     members = rows.loc[rows.index.repeat(2)].reset_index(drop=True)
     params = fit.params.reshape(2 * n, len(PARAMS)).copy()
@@ -129,7 +129,7 @@ def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.Dat
                          ("iterations", fit.iterations), ("converged", fit.converged)):  # fmt: skip
         members[name] = np.repeat(values, 2)
     for name in FIT_COLUMNS[FIT_COLUMNS.index("converged") + 1 :]:
-        members[name] = np.nan  # Cramér–Rao errors: no sandwich correlations
+        members[name] = np.nan  # not reported for the two-emitter model
     return members
 
 
@@ -171,7 +171,7 @@ def split_pairs(
         return table
     local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
     local[:, :2] -= corner[candidates]
-    fit = fit_pairs(rois[candidates], local, readnoise=readnoise)
+    fit = fit_pairs(rois[candidates], local, readnoise=readnoise, errors="sandwich")
     proposed = is_split(fit, rois.shape[1:])
     # without a calibration the width is the evidence; with one, the flags that made a candidate
     table.loc[candidates, "merged"] = calibration is None
