@@ -2,7 +2,8 @@
 
 Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
 that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
-freedom) and shaped beyond what one emitter looks like is a candidate:
+freedom), away from the frame's edge, and shaped beyond what one emitter looks like is a
+candidate:
 
 - with a calibration, the calibration does not locate it or its widths and ρ lie far from the
   curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
@@ -89,6 +90,7 @@ def _beyond(
     """Which rows, fitted in ROIs of ``pixels`` pixels, fit poorly and are shaped beyond one
     emitter (see the module docstring); the calibration is applied to the poor fits only."""
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
+    finite &= ~table["edge"].to_numpy(bool)  # a ROI at the frame's edge is not all frame
     dof = pixels - len(PARAMS)
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
