@@ -39,16 +39,59 @@ def emitter_movie(
             }
         )
         table["amplitude"] = amplitude_of(table.photons, table.wx, table.wy, table.rho)
-        col, row = np.round(x).astype(int), np.round(y).astype(int)
-        local = table.assign(x=x - col + HALF, y=y - row + HALF, background=0.0)
-        patches = render_rois(local, shape=2 * HALF + 1)
-        for k in range(n):
-            r0, c0 = row[k] - HALF, col[k] - HALF
-            rs = slice(max(r0, 0), min(r0 + 2 * HALF + 1, height))
-            cs = slice(max(c0, 0), min(c0 + 2 * HALF + 1, width))
-            expected[t, rs, cs] += patches[
-                k, rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0
-            ]
+        _add_spots(expected[t], table)
+        truth.append(table)
+    return rng.poisson(expected).astype(np.float64), pd.concat(truth, ignore_index=True)
+
+
+def _add_spots(expected, table):
+    """Add the eq. 1 spots of ``table`` to one frame ``expected`` (H, W), clipped at its edges."""
+    height, width = expected.shape
+    col, row = np.round(table.x).astype(int), np.round(table.y).astype(int)
+    local = table.assign(x=table.x - col + HALF, y=table.y - row + HALF, background=0.0)
+    patches = render_rois(local, shape=2 * HALF + 1)
+    for k in range(len(table)):
+        r0, c0 = row.iloc[k] - HALF, col.iloc[k] - HALF
+        rs = slice(max(r0, 0), min(r0 + 2 * HALF + 1, height))
+        cs = slice(max(c0, 0), min(c0 + 2 * HALF + 1, width))
+        expected[rs, cs] += patches[k, rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
+
+
+def edge_movie(n_frames, shape, *, seed, background=30.0, photons=(2e3, 1e4), depth=7.0):
+    """Emitters 0–``depth`` px from the frame's border (column ``distance``: from the centre of
+    the outermost pixel), three along each edge per frame at least 16 px apart, and four inside
+    the frame; spots as in `emitter_movie`. Returns the noisy movie and the truth table."""
+    rng = np.random.default_rng(seed)
+    height, width = shape
+    expected = np.full((n_frames, height, width), float(background))
+    truth = []
+    for t in range(n_frames):
+        along = np.tile(np.array([0.25, 0.5, 0.75]), 4) + rng.uniform(-0.04, 0.04, 12)
+        depth_px = rng.uniform(0.0, depth, 12)
+        side = np.repeat(np.arange(4), 3)
+        x = np.select([side == 0, side == 1, side == 2], [depth_px, width - 1 - depth_px,
+                      along * (width - 1)], along * (width - 1))  # fmt: skip
+        y = np.select([side == 0, side == 1, side == 2], [along * (height - 1),
+                      along * (height - 1), depth_px], height - 1 - depth_px)  # fmt: skip
+        inner = np.array([[0.35, 0.35], [0.35, 0.65], [0.65, 0.35], [0.65, 0.65]])
+        x = np.r_[x, inner[:, 0] * (width - 1) + rng.uniform(-1, 1, 4)]
+        y = np.r_[y, inner[:, 1] * (height - 1) + rng.uniform(-1, 1, 4)]
+        n = len(x)
+        table = pd.DataFrame(
+            {
+                "frame": t,
+                "x": x,
+                "y": y,
+                "distance": np.minimum.reduce([x, y, width - 1 - x, height - 1 - y]),
+                "across": np.r_[np.where(side < 2, 0, 1), np.full(4, -1)],
+                "photons": np.exp(rng.uniform(*np.log(photons), n)),
+                "wx": rng.uniform(1.0, 2.0, n),
+                "wy": rng.uniform(1.0, 2.0, n),
+                "rho": rng.uniform(-0.5, 0.5, n),
+            }
+        )
+        table["amplitude"] = amplitude_of(table.photons, table.wx, table.wy, table.rho)
+        _add_spots(expected[t], table)
         truth.append(table)
     return rng.poisson(expected).astype(np.float64), pd.concat(truth, ignore_index=True)
 
