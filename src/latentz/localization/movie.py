@@ -33,6 +33,7 @@ from latentz.fit.api import (
     with_sandwich,
 )
 from latentz.io import as_frames, open_movie, read_frames
+from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
 from latentz.localization.quality import assess, check_calibration_fits
 
@@ -375,7 +376,7 @@ def localize(
         table = _localize_chunks(frames, movie, chunk_frames, options, scheduler, progress)
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
-        table = calibration.apply(table)
+        table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))
     table = assess(table, calibration)
     if calibration is not None:
         table = check_calibration_fits(table)
