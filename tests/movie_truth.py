@@ -4,6 +4,7 @@ import numpy as np
 import pandas as pd
 
 from latentz.fit import amplitude_of, render_rois
+from latentz.simulate.molecules import place_edge_molecules
 
 HALF = 10  # spots are rendered into 21 x 21 patches: 5 sd of the widest (2 px) spot
 
@@ -57,43 +58,22 @@ def _add_spots(expected, table):
         expected[rs, cs] += patches[k, rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
 
 
-def edge_movie(n_frames, shape, *, seed, background=30.0, photons=(2e3, 1e4), depth=7.0):
-    """Emitters 0–``depth`` px from the frame's border (column ``distance``: from the centre of
-    the outermost pixel), three along each edge per frame at least 16 px apart, and four inside
-    the frame; spots as in `emitter_movie`. Returns the noisy movie and the truth table."""
+def edge_movie(n_frames, shape, *, seed, background=30.0, photons=(2e3, 1e4)):
+    """Emitters 0–7.5 px from the frame's border and four inside per frame, placed as
+    :func:`latentz.simulate.molecules.place_edge_molecules` places molecules (columns
+    ``distance_px``, ``across``), as eq. 1 spots as in `emitter_movie`. Returns the noisy movie
+    and the truth table."""
     rng = np.random.default_rng(seed)
-    height, width = shape
-    expected = np.full((n_frames, height, width), float(background))
-    truth = []
-    for t in range(n_frames):
-        along = np.tile(np.array([0.25, 0.5, 0.75]), 4) + rng.uniform(-0.04, 0.04, 12)
-        depth_px = rng.uniform(0.0, depth, 12)
-        side = np.repeat(np.arange(4), 3)
-        x = np.select([side == 0, side == 1, side == 2], [depth_px, width - 1 - depth_px,
-                      along * (width - 1)], along * (width - 1))  # fmt: skip
-        y = np.select([side == 0, side == 1, side == 2], [along * (height - 1),
-                      along * (height - 1), depth_px], height - 1 - depth_px)  # fmt: skip
-        inner = np.array([[0.35, 0.35], [0.35, 0.65], [0.65, 0.35], [0.65, 0.65]])
-        x = np.r_[x, inner[:, 0] * (width - 1) + rng.uniform(-1, 1, 4)]
-        y = np.r_[y, inner[:, 1] * (height - 1) + rng.uniform(-1, 1, 4)]
-        n = len(x)
-        table = pd.DataFrame(
-            {
-                "frame": t,
-                "x": x,
-                "y": y,
-                "distance": np.minimum.reduce([x, y, width - 1 - x, height - 1 - y]),
-                "across": np.r_[np.where(side < 2, 0, 1), np.full(4, -1)],
-                "photons": np.exp(rng.uniform(*np.log(photons), n)),
-                "wx": rng.uniform(1.0, 2.0, n),
-                "wy": rng.uniform(1.0, 2.0, n),
-                "rho": rng.uniform(-0.5, 0.5, n),
-            }
-        )
-        table["amplitude"] = amplitude_of(table.photons, table.wx, table.wy, table.rho)
+    placed = place_edge_molecules(rng, n_frames=n_frames, frame_shape=shape, photons=photons)
+    n = len(placed)
+    truth = placed.assign(
+        wx=rng.uniform(1.0, 2.0, n), wy=rng.uniform(1.0, 2.0, n), rho=rng.uniform(-0.5, 0.5, n)
+    )
+    truth["amplitude"] = amplitude_of(truth.photons, truth.wx, truth.wy, truth.rho)
+    expected = np.full((n_frames, *shape), float(background))
+    for t, table in truth.groupby("frame"):
         _add_spots(expected[t], table)
-        truth.append(table)
-    return rng.poisson(expected).astype(np.float64), pd.concat(truth, ignore_index=True)
+    return rng.poisson(expected).astype(np.float64), truth
 
 
 def match(truth, found, *, radius=2.0):

@@ -7,9 +7,9 @@ Truth is where the simulation put each emitter (eq. 1 spots with Poisson noise,
 import numpy as np
 import pytest
 from movie_truth import edge_movie
-from scipy.spatial import cKDTree
 
 from latentz.localization import localize
+from latentz.validation.molecules import nearest_rows
 
 ROI = 11
 
@@ -18,24 +18,12 @@ ROI = 11
 def edges():
     frames, truth = edge_movie(60, (64, 64), seed=31, photons=(3e3, 1e4))
     locs = localize(frames, roi_size=ROI)
-    return frames, truth, locs, _nearest(truth, locs)
-
-
-def _nearest(truth, locs):
-    """For each true emitter, the index of the nearest row of its frame within 2 px, else -1."""
-    found = np.full(len(truth), -1)
-    for t, rows in locs.groupby("frame").indices.items():
-        mine = np.flatnonzero(truth.frame.to_numpy() == t)
-        dist, k = cKDTree(locs[["x", "y"]].to_numpy()[rows]).query(
-            truth[["x", "y"]].to_numpy()[mine]
-        )
-        found[mine] = np.where(dist < 2, rows[np.minimum(k, len(rows) - 1)], -1)
-    return found
+    return frames, truth, locs, nearest_rows(truth, locs, radius_px=2.0)
 
 
 def test_every_emitter_at_the_edge_is_found_flagged_and_good(edges):
     _, truth, locs, nearest = edges
-    near = truth.distance.to_numpy() < 7.5
+    near = truth.distance_px.to_numpy() < 7.5
     assert near.sum() == 720
     # 3,000–10,000 photons over 30 per pixel: detection misses about 1 % of those within 1 px
     # of the border (their band-passed noise is 1.56x the interior's), 1–2 of these 720; 5 is
@@ -43,7 +31,7 @@ def test_every_emitter_at_the_edge_is_found_flagged_and_good(edges):
     assert np.sum(nearest[near] < 0) <= 5
     seen = near & (nearest >= 0)
     rows = locs.iloc[nearest[seen]]
-    reaches = truth.distance.to_numpy()[seen] < ROI // 2 - 0.5  # its ROI crosses the border
+    reaches = truth.distance_px.to_numpy()[seen] < ROI // 2 - 0.5  # its ROI crosses the border
     assert rows.edge.to_numpy()[reaches].all()
     assert rows.good.mean() > 0.97
     assert not locs.iloc[nearest[~near]].edge.any()
@@ -52,7 +40,7 @@ def test_every_emitter_at_the_edge_is_found_flagged_and_good(edges):
 @pytest.mark.parametrize("band", [(0.0, 1.0), (1.0, 3.0), (3.0, 7.5)])
 def test_errors_at_the_edge_hold_their_reported_sigma(edges, band):
     _, truth, locs, nearest = edges
-    chosen = (truth.distance >= band[0]) & (truth.distance < band[1]) & (nearest >= 0)
+    chosen = (truth.distance_px >= band[0]) & (truth.distance_px < band[1]) & (nearest >= 0)
     rows = locs.iloc[nearest[chosen]]
     fitted = rows.converged.to_numpy()
     rows, true = rows[fitted], truth[chosen][fitted]

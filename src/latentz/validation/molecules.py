@@ -27,7 +27,13 @@ from latentz.simulate.molecules import (
 )
 from latentz.validation.challenge import correct_rows
 
-__all__ = ["bead_calibration", "edge_errors", "localized_molecules", "true_positives"]
+__all__ = [
+    "bead_calibration",
+    "edge_errors",
+    "localized_molecules",
+    "nearest_rows",
+    "true_positives",
+]
 
 #: One set: (localizations with ``correct``, truth, calibration).
 Scored = tuple[pd.DataFrame, pd.DataFrame, Calibration]
@@ -114,7 +120,7 @@ def edge_errors(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the CPU note
         locs = localize(frames, calibration=calibration)
-    row = _nearest_rows(truth, locs, radius_px=2.0)
+    row = nearest_rows(truth, locs, radius_px=2.0)
     found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
     cut_x = truth["across"].to_numpy() == 0
     inner = (truth["across"].to_numpy() == -1) & (row >= 0) & found["in_range"].to_numpy(bool)
@@ -137,7 +143,7 @@ def edge_errors(
     return out
 
 
-def _nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
+def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
     """For each true molecule, the position in ``locs`` of the nearest row of its frame within
     ``radius_px``, else −1."""
     nearest = np.full(len(truth), -1)
