@@ -4,6 +4,7 @@ import numpy as np
 import pandas as pd
 
 from latentz.fit import amplitude_of, render_rois
+from latentz.simulate.molecules import place_edge_molecules
 
 HALF = 10  # spots are rendered into 21 x 21 patches: 5 sd of the widest (2 px) spot
 
@@ -39,18 +40,40 @@ def emitter_movie(
             }
         )
         table["amplitude"] = amplitude_of(table.photons, table.wx, table.wy, table.rho)
-        col, row = np.round(x).astype(int), np.round(y).astype(int)
-        local = table.assign(x=x - col + HALF, y=y - row + HALF, background=0.0)
-        patches = render_rois(local, shape=2 * HALF + 1)
-        for k in range(n):
-            r0, c0 = row[k] - HALF, col[k] - HALF
-            rs = slice(max(r0, 0), min(r0 + 2 * HALF + 1, height))
-            cs = slice(max(c0, 0), min(c0 + 2 * HALF + 1, width))
-            expected[t, rs, cs] += patches[
-                k, rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0
-            ]
+        _add_spots(expected[t], table)
         truth.append(table)
     return rng.poisson(expected).astype(np.float64), pd.concat(truth, ignore_index=True)
+
+
+def _add_spots(expected, table):
+    """Add the eq. 1 spots of ``table`` to one frame ``expected`` (H, W), clipped at its edges."""
+    height, width = expected.shape
+    col, row = np.round(table.x).astype(int), np.round(table.y).astype(int)
+    local = table.assign(x=table.x - col + HALF, y=table.y - row + HALF, background=0.0)
+    patches = render_rois(local, shape=2 * HALF + 1)
+    for k in range(len(table)):
+        r0, c0 = row.iloc[k] - HALF, col.iloc[k] - HALF
+        rs = slice(max(r0, 0), min(r0 + 2 * HALF + 1, height))
+        cs = slice(max(c0, 0), min(c0 + 2 * HALF + 1, width))
+        expected[rs, cs] += patches[k, rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
+
+
+def edge_movie(n_frames, shape, *, seed, background=30.0, photons=(2e3, 1e4)):
+    """Emitters 0–7.5 px from the frame's border and four inside per frame, placed as
+    :func:`latentz.simulate.molecules.place_edge_molecules` places molecules (columns
+    ``distance_px``, ``across``), as eq. 1 spots as in `emitter_movie`. Returns the noisy movie
+    and the truth table."""
+    rng = np.random.default_rng(seed)
+    placed = place_edge_molecules(rng, n_frames=n_frames, frame_shape=shape, photons=photons)
+    n = len(placed)
+    truth = placed.assign(
+        wx=rng.uniform(1.0, 2.0, n), wy=rng.uniform(1.0, 2.0, n), rho=rng.uniform(-0.5, 0.5, n)
+    )
+    truth["amplitude"] = amplitude_of(truth.photons, truth.wx, truth.wy, truth.rho)
+    expected = np.full((n_frames, *shape), float(background))
+    for t, table in truth.groupby("frame"):
+        _add_spots(expected[t], table)
+    return rng.poisson(expected).astype(np.float64), truth
 
 
 def match(truth, found, *, radius=2.0):

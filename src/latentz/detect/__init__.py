@@ -17,6 +17,7 @@ from latentz.detect.api import (
     find_peaks,
     noise_level,
     roi_corners,
+    roi_windows,
 )
 
 __all__ = [
@@ -32,4 +33,5 @@ __all__ = [
     "find_peaks",
     "noise_level",
     "roi_corners",
+    "roi_windows",
 ]

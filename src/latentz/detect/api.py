@@ -37,6 +37,7 @@ __all__ = [
     "edge_noise_gain",
     "find_peaks",
     "roi_corners",
+    "roi_windows",
     "cut_rois",
     "cut_photons",
     "merge_maxima",
@@ -268,16 +269,48 @@ def roi_corners(
     return row0, col0, (row0 != rows - half) | (col0 != cols - half)
 
 
+def roi_windows(
+    rows: np.ndarray, cols: np.ndarray, roi_size: int, frame_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """ROIs centred on integer ``(rows, cols)``, moved into frames of ``frame_shape`` where the
+    centre lies outside: first pixels ``(row0, col0)`` (negative, or beyond the frame's last
+    ``roi_size`` pixels, where the ROI reaches past the frame's edge), the window of each
+    ROI that lies inside the frame (``(row_start, row_stop, col_start, col_stop)``, ROI pixels,
+    :mod:`latentz.fit.windows`), and whether it is clipped."""
+    height, width = frame_shape
+    half = roi_size // 2
+    row0 = np.clip(rows, 0, height - 1) - half
+    col0 = np.clip(cols, 0, width - 1) - half
+    windows = np.column_stack(
+        [
+            np.maximum(-row0, 0),
+            np.minimum(height - row0, roi_size),
+            np.maximum(-col0, 0),
+            np.minimum(width - col0, roi_size),
+        ]
+    ).astype(np.int64)
+    clipped = np.any(windows != [0, roi_size, 0, roi_size], axis=1)
+    return row0, col0, windows, clipped
+
+
 def cut_rois(
     stack: np.ndarray, frame: np.ndarray, row0: np.ndarray, col0: np.ndarray, roi_size: int
 ) -> np.ndarray:
-    """ROIs ``(n, roi_size, roi_size)`` (float64) of ``stack (t, H, W)`` at the given corners."""
+    """ROIs ``(n, roi_size, roi_size)`` (float64) of ``stack (t, H, W)`` at the given corners;
+    the pixels of a ROI that lie outside the frame are NaN."""
+    height, width = stack.shape[-2:]
     offsets = np.arange(roi_size)
-    return stack[
+    rows = row0[:, None] + offsets[None, :]
+    cols = col0[:, None] + offsets[None, :]
+    rois = stack[
         frame[:, None, None],
-        row0[:, None, None] + offsets[None, :, None],
-        col0[:, None, None] + offsets[None, None, :],
+        np.clip(rows, 0, height - 1)[:, :, None],
+        np.clip(cols, 0, width - 1)[:, None, :],
     ].astype(np.float64)
+    outside_rows = (rows < 0) | (rows >= height)
+    outside_cols = (cols < 0) | (cols >= width)
+    rois[outside_rows[:, :, None] | outside_cols[:, None, :]] = np.nan
+    return rois
 
 
 def check_frames(frames: Any, roi_size: Any) -> tuple[np.ndarray, int]:

@@ -31,7 +31,7 @@ from latentz.detect import (
     cut_photons,
     default_threshold,
     detect_arrays,
-    roi_corners,
+    roi_windows,
 )
 from latentz.fit.api import FitResult, fit_arrays, replace_rows, result_table, with_sandwich
 
@@ -104,17 +104,17 @@ def _fit_centred(
     """Fit ROIs centred at ``xy`` (k, 2) px of frame ``t``; refit once where the fit lands on
     another pixel. Returns the fit (x, y in full-frame px), row0, col0 and edge flags."""
     rows, cols = np.rint(xy[:, 1]).astype(np.int64), np.rint(xy[:, 0]).astype(np.int64)
-    row0, col0, edge = roi_corners(rows, cols, size, source.shape)
+    row0, col0, windows, edge = roi_windows(rows, cols, size, source.shape)
     start = None
     if init is not None:
         start = init.copy()
         start[:, 0] = xy[:, 0] - col0
         start[:, 1] = xy[:, 1] - row0
     rois = source.rois(t, row0, col0, size)
-    fit = fit_arrays(rois, method=method, readnoise=readnoise, init=start)
+    fit = fit_arrays(rois, method=method, readnoise=readnoise, init=start, windows=windows)
     x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
     ok = np.isfinite(x) & np.isfinite(y)
-    new_row0, new_col0, new_edge = roi_corners(
+    new_row0, new_col0, new_windows, new_edge = roi_windows(
         np.where(ok, np.rint(y), rows).astype(np.int64),
         np.where(ok, np.rint(x), cols).astype(np.int64),
         size,
@@ -129,13 +129,16 @@ def _fit_centred(
             readnoise=readnoise,
             init=_shifted(fit.params[moved], col0[moved] - new_col0[moved],
                           row0[moved] - new_row0[moved]),
+            windows=new_windows[moved],
         )  # fmt: skip
         fit = replace_rows(fit, again, moved)
         rois = rois.copy()
         rois[moved] = centred
-        row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
+        row0, col0, windows, edge = new_row0, new_col0, new_windows, new_edge
     # the errors of the final fits only (the sandwich needs each one's own ROI)
-    fit = with_sandwich(fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise)
+    fit = with_sandwich(
+        fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise, windows=windows
+    )
     params = fit.params.copy()
     params[:, 0] += col0
     params[:, 1] += row0

@@ -23,7 +23,7 @@ from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import cut_photons, detect_arrays, roi_corners
+from latentz.detect import cut_photons, detect_arrays, roi_windows
 from latentz.fit.api import (
     FIT_COLUMNS,
     METHODS,
@@ -33,6 +33,7 @@ from latentz.fit.api import (
     with_sandwich,
 )
 from latentz.io import as_frames, open_movie, read_frames
+from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
 from latentz.localization.pairs import PAIR_COLUMNS, split_pairs
 from latentz.localization.quality import assess, check_calibration_fits
@@ -113,27 +114,32 @@ def _localize_chunk(
     readnoise = camera.readnoise if camera is not None else 0.0
     rois = found.rois
     fit = fit_arrays(rois, method=method, readnoise=readnoise, device=device)
-    row0, col0, edge = found.row0, found.col0, found.edge
+    row0, col0 = found.row0, found.col0
     # Centre each ROI on its fitted position, as calibration centres its fixed ROI on the
     # particle: the fitted widths and centre of a wide, truncated spot depend on where the ROI
-    # sits, and the detection peak can be a pixel off for a defocused, asymmetric image.
+    # sits, and the detection peak can be a pixel off for a defocused, asymmetric image. At the
+    # frame's edge the ROI is clipped to the frame: its pixels outside are left out of the fit.
     x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
     ok = np.isfinite(x) & np.isfinite(y)
     rows = np.where(ok, np.rint(y), found.row).astype(np.int64)
     cols = np.where(ok, np.rint(x), found.col).astype(np.int64)
-    new_row0, new_col0, new_edge = roi_corners(rows, cols, roi_size, block.shape[-2:])
+    new_row0, new_col0, windows, edge = roi_windows(rows, cols, roi_size, block.shape[-2:])
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
         again = cut_photons(
             block, found.frame[moved], new_row0[moved], new_col0[moved], roi_size, camera_terms
         )
-        refit = fit_arrays(again, method=method, readnoise=readnoise, device=device)
+        refit = fit_arrays(
+            again, method=method, readnoise=readnoise, device=device, windows=windows[moved]
+        )
         fit = replace_rows(fit, refit, moved)
         rois = rois.copy()
         rois[moved] = again
-        row0, col0, edge = new_row0, new_col0, np.where(moved, new_edge, edge)
+        row0, col0 = new_row0, new_col0
     # the errors of the final fits only (the sandwich needs each one's own ROI)
-    fit = with_sandwich(fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise)
+    fit = with_sandwich(
+        fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise, windows=windows
+    )
     params = fit.params.copy()
     params[:, 0] += col0
     params[:, 1] += row0
@@ -362,10 +368,11 @@ def localize(
     DataFrame
         `LOCALIZE_COLUMNS`: ``frame``, every column of :func:`latentz.fit.fit_rois` with ``x, y``
         in full-frame pixels (pixel ``[i, j]`` centred at ``x = j, y = i``), ``snr`` (detection
-        score in noise units), ``edge`` (the ROI was shifted inward at the frame's edge),
-        ``close_pair`` (another detection lies inside this ROI), ``pair`` (the number shared
-        by the two rows of a two-emitter fit, −1 otherwise) and ``merged`` (shaped beyond one
-        emitter, not split); with a calibration, the
+        score in noise units), ``edge`` (the ROI reaches past the frame's edge: it is clipped to
+        the frame, and its pixels outside are left out of the fit), ``close_pair`` (another
+        detection lies inside this ROI), ``pair`` (the number shared by the two rows of a
+        two-emitter fit, −1 otherwise) and ``merged`` (shaped beyond one emitter, not split);
+        with a calibration, the
         columns of :meth:`~latentz.calibration.Calibration.apply` too. Then the quality verdict
         of :func:`latentz.localization.quality.assess`: ``good`` and the flags that explain it
         (nothing is
@@ -398,7 +405,7 @@ def localize(
         table["pair"] = _number_pairs(table)
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
-        table = calibration.apply(table)
+        table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))
     table = assess(table, calibration)
     if calibration is not None:
         table = check_calibration_fits(table)

@@ -27,7 +27,13 @@ from latentz.simulate._render import (
 from latentz.simulate.aberrations import AberrationMap
 from latentz.simulate.optics import Optics
 
-__all__ = ["Microscope", "random_microscope", "place_molecules", "molecule_frames"]
+__all__ = [
+    "Microscope",
+    "random_microscope",
+    "place_molecules",
+    "place_edge_molecules",
+    "molecule_frames",
+]
 
 _BATCH = 512  # molecules rendered per batch (memory: batch × patch² × complex pupil)
 
@@ -104,6 +110,49 @@ def place_molecules(
             "photons": np.exp(rng.uniform(*np.log(photons), n)),
         }
     )
+
+
+def place_edge_molecules(
+    rng: np.random.Generator,
+    *,
+    n_frames: int,
+    frame_shape: tuple[int, int],
+    depth_px: float = 7.5,
+    photons: tuple[float, float] = (3e3, 1e4),
+    z_range_nm: tuple[float, float] = (-400.0, 400.0),
+) -> pd.DataFrame:
+    """Per frame, three molecules along each edge of the frame, 0–``depth_px`` from it, at a
+    quarter, half and three quarters of its length (±2 px), and four inside (at 35 and 65 % of
+    each side, ±1 px); log-uniform ``photons``, uniform ``z_range_nm``. Columns as
+    `place_molecules`, with ``distance_px`` (from the centre of the frame's outermost pixel;
+    the inner ones' from the frame's edge) and ``across`` (0: the nearest edge cuts x, 1: y,
+    −1: inside)."""
+    rows, cols = check_shape2("frame_shape", frame_shape)
+    depth_px = check_positive("depth_px", depth_px)
+    tables = []
+    for frame in range(n_frames):
+        along = np.tile([0.25, 0.5, 0.75], 4) + rng.uniform(-2.0, 2.0, 12) / min(rows, cols)
+        depth = rng.uniform(0.0, depth_px, 12)
+        side = np.repeat(np.arange(4), 3)  # left, right, top, bottom
+        x = np.choose(side, [depth, cols - 1 - depth, along * (cols - 1), along * (cols - 1)])
+        y = np.choose(side, [along * (rows - 1), along * (rows - 1), depth, rows - 1 - depth])
+        inner = np.array([0.35, 0.35, 0.65, 0.65]), np.array([0.35, 0.65, 0.35, 0.65])
+        x = np.r_[x, inner[0] * (cols - 1) + rng.uniform(-1.0, 1.0, 4)]
+        y = np.r_[y, inner[1] * (rows - 1) + rng.uniform(-1.0, 1.0, 4)]
+        tables.append(
+            pd.DataFrame(
+                {
+                    "frame": frame,
+                    "x": x,
+                    "y": y,
+                    "z_nm": rng.uniform(*z_range_nm, 16),
+                    "photons": np.exp(rng.uniform(*np.log(photons), 16)),
+                    "distance_px": np.minimum.reduce([x, y, cols - 1 - x, rows - 1 - y]),
+                    "across": np.r_[np.where(side < 2, 0, 1), np.full(4, -1)],
+                }
+            )
+        )
+    return pd.concat(tables, ignore_index=True)
 
 
 def molecule_frames(

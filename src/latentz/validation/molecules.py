@@ -14,14 +14,26 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 import pandas as pd
+from scipy.spatial import cKDTree
 
 from latentz.calibration import Calibration, calibrate
 from latentz.localization import localize
 from latentz.simulate import calibration_dataset
-from latentz.simulate.molecules import Microscope, molecule_frames, place_molecules
+from latentz.simulate.molecules import (
+    Microscope,
+    molecule_frames,
+    place_edge_molecules,
+    place_molecules,
+)
 from latentz.validation.challenge import correct_rows
 
-__all__ = ["bead_calibration", "localized_molecules", "true_positives"]
+__all__ = [
+    "bead_calibration",
+    "edge_errors",
+    "localized_molecules",
+    "nearest_rows",
+    "true_positives",
+]
 
 #: One set: (localizations with ``correct``, truth, calibration).
 Scored = tuple[pd.DataFrame, pd.DataFrame, Calibration]
@@ -83,3 +95,63 @@ def true_positives(
         rows = locs if keep is None else locs[keep(locs)]
         total += int(correct_rows(truth, rows)[0].sum())
     return total
+
+
+def edge_errors(
+    microscope: Microscope,
+    calibration: Calibration,
+    rng: np.random.Generator,
+    *,
+    n_frames: int,
+    frame_shape: tuple[int, int] = (96, 96),
+    **placement,
+) -> pd.DataFrame:
+    """Molecules at the frame's edge (:func:`~latentz.simulate.molecules.place_edge_molecules`
+    with ``placement``) localized with ``calibration`` and defaults, one row per molecule:
+    ``distance_px``, ``across``, ``found`` (a localization within 2 px), its ``good`` and
+    ``edge``, and its errors across the nearest edge, along it and in z (nm; one offset per
+    axis, the inner molecules' median error, removed: a point molecule is not the calibration's
+    bead) with their reported 1σ (``*_err_nm``)."""
+    molecules = place_edge_molecules(rng, n_frames=n_frames, frame_shape=frame_shape, **placement)
+    frames, truth = molecule_frames(
+        molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
+        seed=int(rng.integers(2**31)),
+    )  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the CPU note
+        locs = localize(frames, calibration=calibration)
+    row = nearest_rows(truth, locs, radius_px=2.0)
+    found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
+    cut_x = truth["across"].to_numpy() == 0
+    inner = (truth["across"].to_numpy() == -1) & (row >= 0) & found["in_range"].to_numpy(bool)
+    errors = {}
+    for axis in "xyz":  # one offset per axis: the inner molecules' median error
+        error = (found[f"{axis}_nm"] - truth[f"{axis}_nm"]).to_numpy()
+        errors[axis] = error - np.median(error[inner])
+    sigmas = {axis: found[f"{axis}_err_nm"].to_numpy() for axis in "xyz"}
+    out = truth[["frame", "distance_px", "across", "photons"]].assign(
+        found=row >= 0,
+        good=found["good"].to_numpy(bool) & (row >= 0),
+        edge=found["edge"].to_numpy(bool) & (row >= 0),
+        across_nm=np.where(cut_x, errors["x"], errors["y"]),
+        across_err_nm=np.where(cut_x, sigmas["x"], sigmas["y"]),
+        along_nm=np.where(cut_x, errors["y"], errors["x"]),
+        along_err_nm=np.where(cut_x, sigmas["y"], sigmas["x"]),
+        z_nm=errors["z"],
+        z_err_nm=sigmas["z"],
+    )
+    return out
+
+
+def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
+    """For each true molecule, the position in ``locs`` of the nearest row of its frame within
+    ``radius_px``, else −1."""
+    nearest = np.full(len(truth), -1)
+    frames = truth["frame"].to_numpy()
+    for frame, rows in locs.groupby("frame").indices.items():
+        mine = np.flatnonzero(frames == frame)
+        dist, k = cKDTree(locs[["x", "y"]].to_numpy()[rows]).query(
+            truth[["x", "y"]].to_numpy()[mine], distance_upper_bound=radius_px
+        )
+        nearest[mine] = np.where(np.isfinite(dist), rows[np.minimum(k, len(rows) - 1)], -1)
+    return nearest
