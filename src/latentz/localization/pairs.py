@@ -2,8 +2,8 @@
 
 Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
 that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
-freedom), away from the frame's edge, and shaped beyond what one emitter looks like is a
-candidate:
+freedom), away from the frame's edge, with no other detection in its ROI, and shaped beyond
+what one emitter looks like is a candidate:
 
 - with a calibration, the calibration does not locate it or its widths and ρ lie far from the
   curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
@@ -90,7 +90,8 @@ def _beyond(
     """Which rows, fitted in ROIs of ``pixels`` pixels, fit poorly and are shaped beyond one
     emitter (see the module docstring); the calibration is applied to the poor fits only."""
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    finite &= ~table["edge"].to_numpy(bool)  # a ROI at the frame's edge is not all frame
+    # a ROI at the frame's edge is not all frame; one with another detection holds a third
+    finite &= ~table["edge"].to_numpy(bool) & ~table["close_pair"].to_numpy(bool)
     dof = pixels - len(PARAMS)
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
@@ -177,6 +178,8 @@ def split_pairs(
     proposed = is_split(fit, rois.shape[1:])
     # without a calibration the width is the evidence; with one, the flags that made a candidate
     table.loc[candidates, "merged"] = calibration is None
+    if not proposed.any():
+        return table
     members = _member_rows(table.loc[candidates[proposed]], _take(fit, proposed),
                            corner[candidates[proposed]])  # fmt: skip
     members["pair"] = np.repeat(candidates[proposed], 2)
