@@ -30,13 +30,21 @@ from latentz.fit._model import amplitude_of
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["dim_held_out"]
+__all__ = ["TRANSFER_BIN_NM", "dim_held_out", "transfer_sigma"]
+
+#: Width of the z bins in which :func:`transfer_sigma` pools the held-out errors, nm.
+TRANSFER_BIN_NM = 250.0
+#: Fewest held-out planes a bin of :func:`transfer_sigma` needs.
+_MIN_PER_BIN = 30
 
 
-def dim_held_out(cal: Calibration, photons: float) -> np.ndarray:
-    """(n, n_z) z error (nm) of an emitter of ``photons`` photons imaged like each kept
-    particle at each plane, localized with its nearest other kept particle's refits and inverse
-    model (module notes); NaN for culled particles and where the model does not cover it."""
+def dim_held_out(
+    cal: Calibration, photons: float | None = None, *, ratio: float | None = None
+) -> np.ndarray:
+    """(n, n_z) z error (nm) of an emitter of ``photons`` photons (or of background ratio
+    ``ratio`` = (b + readnoise²) / A) imaged like each kept particle at each plane, localized
+    with its nearest other kept particle's refits and inverse model (module notes); NaN for
+    culled particles and where the model does not cover it."""
     from latentz.calibration.result import _interp_rows, _row_weights
 
     local, traces, shape = cal.local, cal.traces, cal.shape
@@ -68,8 +76,11 @@ def dim_held_out(cal: Calibration, photons: float) -> np.ndarray:
     def neighbour(name: str) -> np.ndarray:
         return _interp_rows(local.z_nm, traces[name], p, z, at)
 
-    amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))
-    c_spot = background_ratio(own("background"), amplitude, readnoise)
+    if ratio is None:
+        amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))
+        c_spot = background_ratio(own("background"), amplitude, readnoise)
+    else:
+        c_spot = np.full(i.size, float(ratio))
     c_own = background_ratio(own("background"), own("amplitude"), readnoise)
     c_near = background_ratio(neighbour("background"), neighbour("amplitude"), readnoise)
     if not all(name in traces.data for name in DIM_COLUMNS):  # no refits: no correction
@@ -83,3 +94,35 @@ def dim_held_out(cal: Calibration, photons: float) -> np.ndarray:
     estimate = np.where(inside, inverse(np.where(inside, s, 0.0)), np.nan)
     errors[i, k] = estimate - z
     return errors
+
+
+def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How much the dimming correction errs when it is carried from the nearest particle to a
+    spot: ``(z_nm, log_c, sigma_nm)``, the RMS over the kept particles of the held-out error at
+    background ratio c (each of :data:`~latentz.calibration.dimming.LEVELS`) minus that of the
+    bright image itself (:func:`dim_held_out`), in z bins :data:`TRANSFER_BIN_NM` wide (bin
+    centres ``z_nm``; bins with fewer than 30 planes merged into the next) by ``log_c``;
+    ``sigma_nm`` (n_levels, n_bins). Empty where there are no refits."""
+    from latentz.calibration.dimming import LEVELS
+
+    if not all(name in cal.traces.data for name in DIM_COLUMNS):
+        return np.zeros(0), np.zeros(0), np.zeros((0, 0))
+    z = cal.local.z_nm
+    bright = dim_held_out(cal, ratio=0.0)  # below every particle's own ratio: no shift
+    differences = [dim_held_out(cal, ratio=c) - bright for c in LEVELS]
+    known = np.isfinite(bright) & np.all(np.isfinite(differences), axis=0)
+    if known.sum() < _MIN_PER_BIN:
+        return np.zeros(0), np.zeros(0), np.zeros((0, 0))
+    zz = z[known]
+    order = np.argsort(zz)
+    zz = zz[order]
+    edges = np.arange(zz[0], zz[-1] + TRANSFER_BIN_NM, TRANSFER_BIN_NM)
+    bins = np.searchsorted(edges, zz, side="right") - 1
+    centres, sigmas, group = [], [], np.zeros(zz.size, bool)
+    for b in np.unique(bins):
+        group |= bins == b
+        if group.sum() >= _MIN_PER_BIN or b == bins[-1]:
+            centres.append(float(np.mean(zz[group])))
+            sigmas.append([np.sqrt(np.mean(d[known][order][group] ** 2)) for d in differences])
+            group[:] = False
+    return np.array(centres), np.log(np.asarray(LEVELS)), np.array(sigmas).T
