@@ -42,8 +42,10 @@ from latentz.camera import Camera
 
 __all__ = ["calibrate", "calibrate_traces"]
 
-#: First ROI of an automatic choice (pixels): its traces give the in-focus width and spacing.
+#: First ROI of an automatic choice (pixels): its traces give the in-focus width and spacing;
+#: where it fails, ROIs this many pixels apart are tried (:func:`_probe_ladder`).
 _FIRST_ROI = 15
+_PROBE_STEP = 8
 #: Fewer kept particles than this cannot carry models across the field.
 _MIN_WIDEFIELD = 3
 #: Fewer usable particles than this make population statistics meaningless: only outright
@@ -271,15 +273,15 @@ def _calibrate_roi(run, first: int, limit: int) -> Calibration:
             except ValueError as exc:
                 failures[roi] = (exc, said)
 
-    attempt(first)
-    probe = runs[first][0].traces if first in runs else None
-    if probe is None:  # judge the spacing and width on the traces of the smallest ROI
-        attempt(MIN_ROI)
-        if MIN_ROI not in runs:
-            exc, said = failures[first]
-            _say(said)
-            raise exc
-        probe = runs[MIN_ROI][0].traces
+    for roi in _probe_ladder(first, limit):  # the first ROI that calibrates
+        attempt(roi)
+        if roi in runs:
+            probe = runs[roi][0].traces
+            break
+    else:
+        exc, said = failures[first]
+        _say(said)
+        raise exc
     upper = min(limit, spacing_limit(probe))
     for roi in candidate_rois(focus_width_px(probe), upper):
         if roi not in runs and roi not in failures:
@@ -293,6 +295,14 @@ def _calibrate_roi(run, first: int, limit: int) -> Calibration:
     cal.options["roi_choice"] = record
     cal.options["roi_size_reason"] = record["reason"]
     return cal
+
+
+def _probe_ladder(first: int, limit: int) -> list[int]:
+    """ROIs to try, in order, until one calibrates: ``first``, the smallest, then up to four
+    larger ones :data:`_PROBE_STEP` px apart, none above ``limit`` (spots that outgrow
+    ``first`` through most of the stack fail their fits there)."""
+    larger = range(first + _PROBE_STEP, min(limit, first + 4 * _PROBE_STEP) + 1, _PROBE_STEP)
+    return list(dict.fromkeys([first, MIN_ROI, *larger]))
 
 
 def calibrate_traces(
