@@ -36,8 +36,8 @@ low-NA microscope of :func:`latentz.validation.make_data`):
 Intensities are normalised by the pupil's total power ``Σ_k w_k |P_k|²`` (Parseval), which is
 π (NA/λ)² for the plain scalar pupil. A bead is the incoherent sum over its volume: three
 axial slices (Gauss quadrature for the sphere's cross-section area, weight 1 − t²); its lateral
-extent is neglected (a 100 nm bead against a 710 nm Airy radius; up to 200 nm in the random
-family, where it widens the calibration particles' images slightly, as a real bead does).
+extent is neglected (a 100 nm bead against a 710 nm Airy radius; the random family draws beads
+up to 200 nm, where a real bead's image would be slightly wider than this one's).
 """
 
 from __future__ import annotations
