@@ -31,40 +31,10 @@ import numpy as np
 import pandas as pd
 
 from latentz._shared.atomic import write_text_atomic
-from latentz.calibration import calibrate
-from latentz.validation.family import FAMILY_SIZES, draw_microscope, family_data
-from latentz.validation.floor import oracle_floor
-from latentz.validation.truth import localize_test, score, summary
+from latentz.validation.family import FAMILY_SIZES
+from latentz.validation.study import run_defaults
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_validation_family.md"
-
-
-def run_draw(seed: int, size: str) -> dict:
-    """One row: the draw's settings, what calibrate chose, the scores and the floor."""
-    start = time.perf_counter()
-    draw = draw_microscope(seed)
-    row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
-           "px nm": round(draw.pixel_size_nm), "λ nm": round(draw.wavelength_nm),
-           "form": draw.form, "astig nm": round(draw.astigmatism_nm),
-           "bead nm": round(draw.bead_nm), "z ± nm": round(draw.z_half_nm),
-           "step nm": draw.z_step_nm}  # fmt: skip
-    data = family_data(draw, size)
-    row["render s"] = round(time.perf_counter() - start)
-    try:
-        cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
-    except ValueError as err:
-        return row | {"fails": str(err).splitlines()[0][:120]}
-    row |= {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
-    spots = localize_test(data, calibration=cal)
-    errors = summary(score(data, cal.apply(spots)))
-    floor = summary(oracle_floor(data, cal, spots, patch_px=FAMILY_SIZES[size]["patch_px"]))
-    row |= {"spots": int(errors["spots"]), "in range": round(errors["in_range"], 2),
-            "z RMSE": errors["rmse_z"], "floor": floor["rmse_z"],
-            "ratio": errors["rmse_z"] / floor["rmse_z"], "x RMSE": errors["rmse_x"],
-            "y RMSE": errors["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
-            "cov z": errors["cover_z"], "fails": ""}  # fmt: skip
-    row["total s"] = round(time.perf_counter() - start)
-    return row
 
 
 def verdict(table: pd.DataFrame, pooled: dict[str, float]) -> list[str]:
@@ -129,7 +99,7 @@ def main() -> None:
     warnings.simplefilter("ignore")
     start, rows = time.perf_counter(), []
     for seed in range(args.first, args.first + args.draws):
-        rows.append(run_draw(seed, args.size))
+        rows.append(run_defaults(seed, args.size))
         print(rows[-1], file=sys.stderr, flush=True)
         write(rows, args, time.perf_counter() - start)
 
