@@ -1,11 +1,13 @@
 """The oracle floor of a validation study: each test emitter's exact local model at its place.
 
 The floor is the z error that latentz's method would reach with perfect knowledge of the field:
-every test emitter is imaged without noise through the calibration's planes, at its own place,
-as a point calibration particle on a flat plane normal to the optical axis, at the
-calibration particles' photons; these stacks are calibrated as latentz calibrates (the shape and
-ROI that the calibration under test chose, ``field_model="nearest"``), and each noisy test spot
-is localized with its own emitter's model. It is scored against the same geometric truth
+every test emitter is imaged through the calibration's planes at its own place, as a point
+calibration particle on a flat plane normal to the optical axis, with the calibration particles'
+photons and the camera's noise, as a calibration particle exactly at the emitter's place would
+be (on noise-free stacks latentz's calibration rejected most particles, as failed fits or
+without a monotonic range); these stacks are calibrated as latentz calibrates (the shape and ROI
+that the calibration under test chose, ``field_model="nearest"``), and each test spot is
+localized with its own emitter's model. It is scored against the same geometric truth
 (:func:`latentz.validation.truth.score`). It is a reference to compare with, not a truth.
 
 :func:`emitter_fits` and :func:`bead_fits` give latentz's fits of noise-free images, for
@@ -19,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from latentz.validation.datasets import ValidationData, _add, render_patches
+from latentz.validation.datasets import ValidationData, _add, _to_adu, render_patches
 from latentz.validation.truth import score
 
 if TYPE_CHECKING:
@@ -66,9 +68,12 @@ def bead_fits(data: ValidationData, bead: int, *, roi_size: int) -> pd.DataFrame
     return _fit_at(data.expected[int(row["stack"])], row["x"], row["y"], roi_size)
 
 
-def own_model_stacks(data: ValidationData, patch_px: int) -> tuple[np.ndarray, pd.DataFrame]:
-    """One noise-free stack (ADU) of every test emitter at its place through ``data.z_nm``, at
-    the calibration particles' photons, and the emitters' table (``emitter``, ``x``, ``y``)."""
+def own_model_stacks(
+    data: ValidationData, patch_px: int, *, seed: int = 0
+) -> tuple[np.ndarray, pd.DataFrame]:
+    """One stack (ADU, camera noise from ``seed``) of every test emitter at its place through
+    ``data.z_nm``, at the calibration particles' photons, and the emitters' table (``emitter``,
+    ``x``, ``y``)."""
     emitters = data.test_truth.drop_duplicates("emitter")[["emitter", "x", "y"]]
     photons = float(data.calibration_truth["photons"].iloc[0])
     h, w = data.frames.shape[1:]
@@ -77,8 +82,7 @@ def own_model_stacks(data: ValidationData, patch_px: int) -> tuple[np.ndarray, p
         defocus = data.z_nm - data.fields.focal_surface_nm(x, y)
         _add(stack, photons * render_patches(data.microscope, data.fields, x, y, defocus,
                                              patch_px), x, y)  # fmt: skip
-    camera = data.camera
-    return stack / camera.gain + camera.offset, emitters.reset_index(drop=True)
+    return _to_adu(stack, data.camera, np.random.default_rng(seed)), emitters.reset_index(drop=True)
 
 
 def oracle_floor(
