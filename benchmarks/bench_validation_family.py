@@ -57,6 +57,20 @@ def verdict(table: pd.DataFrame, pooled: dict[str, float]) -> list[str]:
             for name, good, value in checks]  # fmt: skip
 
 
+def markdown(table: pd.DataFrame) -> str:
+    """A markdown table; numbers to 3 significant digits, missing values blank."""
+
+    def cell(value) -> str:
+        if isinstance(value, float):
+            return "" if np.isnan(value) else f"{value:.3g}"
+        return str(value)
+
+    lines = ["| " + " | ".join(map(str, table.columns)) + " |",
+             "|" + "---|" * len(table.columns)]  # fmt: skip
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in table.itertuples(False)]
+    return "\n".join(lines)
+
+
 COLUMNS = ("spots", "ratio", "cov x", "cov y", "cov z", "fails")
 
 
@@ -78,7 +92,7 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
         "z RMSE, floor and x / y RMSE in nm after one offset and one plane per axis; `cov` is "
         "the share of in-range spots with |error| ≤ the reported 1σ.",
         "",
-        table.to_markdown(index=False, floatfmt=".3g"),
+        markdown(table),
         "",
         "Pooled over the draws that calibrated (weighted by spots): 1σ covers "
         + " / ".join(f"{a} {pooled[a]:.1%}" for a in "xyz") + ".",

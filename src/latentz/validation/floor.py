@@ -5,9 +5,10 @@ every test emitter is imaged through the calibration's planes at its own place, 
 calibration particle on a flat plane normal to the optical axis, with the calibration particles'
 photons and the camera's noise, as a calibration particle exactly at the emitter's place would
 be (on noise-free stacks latentz's calibration rejected most particles, as failed fits or
-without a monotonic range); these stacks are calibrated as latentz calibrates (the shape and ROI
-that the calibration under test chose, ``field_model="nearest"``), and each test spot is
-localized with its own emitter's model. It is scored against the same geometric truth
+without a monotonic range); these stacks, over the central :data:`SPAN` of the stack's range
+(which holds every test spot), are calibrated as latentz calibrates (the shape and ROI that the
+calibration under test chose, ``field_model="nearest"``), and each test spot is localized with
+its own emitter's model. It is scored against the same geometric truth
 (:func:`latentz.validation.truth.score`). It is a reference to compare with, not a truth.
 
 :func:`emitter_fits` and :func:`bead_fits` give latentz's fits of noise-free images, for
@@ -27,7 +28,11 @@ from latentz.validation.truth import score
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["bead_fits", "emitter_fits", "oracle_floor", "own_model_stacks"]
+__all__ = ["SPAN", "bead_fits", "emitter_fits", "oracle_floor", "own_model_stacks"]
+
+#: Share of the stack's half-range that the floor's stacks span: the test spots lie within 2/3
+#: of it, and the outermost planes, where the spot outgrows the ROI, are left out.
+SPAN = 0.85
 
 
 def _fit_at(images: np.ndarray, x_px: float, y_px: float, roi_size: int) -> pd.DataFrame:
@@ -94,7 +99,8 @@ def oracle_floor(
     from latentz.calibration import calibrate
 
     stack, emitters = own_model_stacks(data, patch_px)
-    floor = calibrate([stack], data.z_nm, camera=data.camera, shape=cal.shape,
+    planes = np.abs(data.z_nm) <= SPAN * np.abs(data.z_nm).max()
+    floor = calibrate([stack[planes]], data.z_nm[planes], camera=data.camera, shape=cal.shape,
                       roi_size=cal.roi_size, field_model="nearest")  # fmt: skip
     kept = floor.positions[floor.kept]
     place = emitters.set_index("emitter").loc[spots["emitter"].to_numpy()][["x", "y"]].to_numpy()
