@@ -57,7 +57,7 @@ def test_quick_demo_writes_report_and_recovers_truth(quick_demo):
 
 
 # Known miss, measured and reported (strict: it fails the suite once it passes), see
-# docs/accuracy.md ("The demo's localizations"): in the quick demo (80 particles, 100 nm steps)
+# docs/validation.md ("Known limits"): in the quick demo (80 particles, 100 nm steps)
 # alpha, the precession of a tiny tilt, is off by 2.5x its cycles' sigma (beta 1.87x). The gear's
 # z errors per track (9.4 nm RMS) are a plane, 0.27 mrad off the truth's, the same with every
 # field model, that the reported z_err_nm (median 6.4 nm) does not hold: 1 sigma covers 43 %.

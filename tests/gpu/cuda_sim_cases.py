@@ -18,8 +18,8 @@ import pandas as pd
 assert os.environ.get("NUMBA_ENABLE_CUDASIM") == "1", "run with NUMBA_ENABLE_CUDASIM=1"
 
 import latentz.fit._cuda as fit_cuda  # noqa: E402
-from latentz.detect.api import band_noise, detect_arrays  # noqa: E402
 from latentz.detect._cuda import detect_arrays_cuda  # noqa: E402
+from latentz.detect.api import band_noise, detect_arrays  # noqa: E402
 from latentz.fit import amplitude_of, fit_arrays, render_rois  # noqa: E402
 from latentz.localization import localize  # noqa: E402
 

@@ -76,10 +76,10 @@ def simulator_errors():
 
 
 # Known miss, measured and reported (strict: it fails the suite once it passes), see
-# docs/accuracy.md: x on latentz's simulator is over-covered, 75.7 % of 268 spots against the
-# 75.6 % that this sample allows (reported RMS 1.40 nm against an actual 1.18 nm; 74.3 % before
-# the particles' heights were corrected). Near focus the nearest particle's polynomial error and
-# the lateral lack of fit are both added (0.61 and 0.54 nm), where these bright test beads err
+# docs/validation.md ("Known limits"): x on latentz's simulator is over-covered, 75.7 % of 268 spots
+# against the 75.6 % that this sample allows (reported RMS 1.40 nm against an actual 1.18 nm; 74.3 %
+# before the particles' heights were corrected). Near focus the nearest particle's polynomial error
+# and the lateral lack of fit are both added (0.61 and 0.54 nm), where these bright test beads err
 # by 0.57 nm beyond their fit. On the full-size simulator (4,932 spots) x is covered 66.7 %.
 _MISSES = {("simulator_errors", "x")}
 CASES = [

@@ -1,6 +1,6 @@
 """Shared option parsing for the CLI: camera, z positions, output formats.
 
-Kept apart from ``cli.py`` so that each piece is testable as a plain function.
+Kept apart from the commands (``main.py``) so that each piece is testable as a plain function.
 """
 
 from __future__ import annotations
