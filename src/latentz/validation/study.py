@@ -14,8 +14,9 @@ __all__ = ["run_defaults"]
 def run_defaults(seed: int, size: str = "full") -> dict:
     """One row for draw ``seed`` at ``size``: its settings; what ``calibrate`` chose with no
     shape, ROI or field model given (or ``fails``, the first line of its error); the spots
-    found and in range, z RMSE and its oracle floor (nm), their ratio, x and y RMSE (nm) and the
-    1σ coverage of each axis (:func:`~latentz.validation.truth.summary`); seconds taken."""
+    found and in range, z RMSE and its oracle floor (nm), their ratio, x and y RMSE and their
+    floors (nm) and the 1σ coverage of each axis (:func:`~latentz.validation.truth.summary`);
+    seconds taken."""
     from latentz.calibration import calibrate
 
     start = time.perf_counter()
@@ -37,12 +38,13 @@ def run_defaults(seed: int, size: str = "full") -> dict:
     try:
         floor = summary(oracle_floor(data, cal, spots, patch_px=FAMILY_SIZES[size]["patch_px"]))
     except ValueError as err:  # the floor's own calibration failed: no floor for this draw
-        floor = {"rmse_z": float("nan")}
+        floor = {f"rmse_{axis}": float("nan") for axis in "xyz"}
         row["floor fails"] = str(err).splitlines()[0][:160]
     row |= {"spots": int(errors["spots"]), "in range": round(errors["in_range"], 2),
             "z RMSE": errors["rmse_z"], "floor": floor["rmse_z"],
             "ratio": errors["rmse_z"] / floor["rmse_z"], "x RMSE": errors["rmse_x"],
-            "y RMSE": errors["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
+            "y RMSE": errors["rmse_y"], "floor x": floor["rmse_x"], "floor y": floor["rmse_y"],
+            "cov x": errors["cover_x"], "cov y": errors["cover_y"],
             "cov z": errors["cover_z"], "fails": ""}  # fmt: skip
     row["total s"] = round(time.perf_counter() - start)
     return row
