@@ -161,8 +161,9 @@ def expected_errors(cal: Calibration) -> dict[str, np.ndarray]:
     for error in kinds:
         measured = np.isfinite(error)[kept]
         capped = np.where(measured, np.minimum(error[kept], guess), 0.0)
-        with np.errstate(invalid="ignore"):
-            errors.append(np.sqrt(np.sum(capped**2, axis=0) / measured.sum(axis=0)))
+        count = measured.sum(axis=0)
+        rms = np.sqrt(np.sum(capped**2, axis=0) / np.maximum(count, 1))
+        errors.append(np.where(count > 0, rms, guess))  # none measured: a guess
     usable_nm = np.nanmedian(cal.usable_z_nm[kept], axis=0) if kept.size else [np.nan] * 2
     return {
         "errors": np.array(errors),
@@ -203,6 +204,7 @@ def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     }
     best_core = min(t["core_nm"] for t in table.values())
     eligible = [r for r in rois if table[r]["core_nm"] <= (1 + CORE_TOLERANCE) * best_core]
+    eligible = eligible or rois  # no candidate measures anywhere: judged on range and size
     chosen = min(eligible, key=lambda r: (table[r]["range_nm"], r))
     row = table[chosen]
     lo, hi = row["usable_nm"]
