@@ -1,5 +1,6 @@
-"""The package's import graph, read from the source with `ast`: no import circle, and no import
-from a lower layer into a higher one (the layers of docs/architecture.md)."""
+"""The package's shape, read from the source with `ast`: no import circle, no import from a lower
+layer into a higher one (the layers of docs/architecture.md), and no function longer than 80
+lines outside numba/CUDA kernels."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ LAYERS = (
     ("calibration",),
     ("localization", "motion", "analysis"),
     ("validation", "report"),
-    ("cli",),
+    ("cli", "viewer"),
 )
 
 
@@ -156,3 +157,68 @@ def test_no_import_runs_up_a_layer():
         if _layer(module) is not None  # the package's own __init__ (the public API) is above all
     }
     assert {m: u for m, u in upward.items() if u} == {}
+
+
+#: The longest function body (lines, docstring excluded) outside numba/CUDA kernels.
+MAX_FUNCTION_LINES = 80
+
+
+#: Decorators of numba/CUDA kernels, which may be long (a kernel cannot call Python steps).
+KERNEL_DECORATORS = ("numba.njit", "numba.jit", "njit", "cuda.jit", "numba.cuda.jit")
+
+
+def _is_kernel(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """Decorated with numba's ``njit``/``jit`` or ``cuda.jit``, called or not."""
+    return any(
+        ast.unparse(d.func if isinstance(d, ast.Call) else d) in KERNEL_DECORATORS
+        for d in node.decorator_list
+    )
+
+
+def _body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Lines from the first statement after the docstring to the end of the function."""
+    body = node.body
+    if (
+        body
+        and isinstance(body[0], ast.Expr)
+        and isinstance(body[0].value, ast.Constant)
+        and isinstance(body[0].value.value, str)
+    ):
+        body = body[1:]
+    return body[-1].end_lineno - body[0].lineno + 1 if body else 0
+
+
+def long_functions(tree: ast.AST) -> list[tuple[str, int, int]]:
+    """``(name, line, body lines)`` of every function in ``tree`` longer than the limit."""
+    return [
+        (node.name, node.lineno, _body_lines(node))
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+        and not _is_kernel(node)
+        and _body_lines(node) > MAX_FUNCTION_LINES
+    ]
+
+
+def test_the_length_check_finds_a_planted_long_function():
+    statements = "\n".join(f"    x{i} = {i}" for i in range(MAX_FUNCTION_LINES + 1))
+    script = f'def script():\n    """Doc."""\n{statements}\n'
+    assert [(name, n) for name, _, n in long_functions(ast.parse(script))] == [
+        ("script", MAX_FUNCTION_LINES + 1)
+    ]
+    short = "\n".join(f"    x{i} = {i}" for i in range(MAX_FUNCTION_LINES))
+    assert long_functions(ast.parse(f'def steps():\n    """Doc."""\n{short}\n')) == []
+    kernel = f"import numba\n@numba.njit(cache=True)\ndef kernel():\n{statements}\n"
+    assert long_functions(ast.parse(kernel)) == []
+    assert long_functions(ast.parse(f"@cuda.jit\ndef k():\n{statements}\n")) == []
+
+
+def test_no_function_is_a_script():
+    offenders = [
+        f"{path.relative_to(ROOT.parent)}:{line} {name} ({n} lines)"
+        for path in sorted(ROOT.rglob("*.py"))
+        for name, line, n in long_functions(ast.parse(path.read_text()))
+    ]
+    assert not offenders, (
+        f"{len(offenders)} function(s) over {MAX_FUNCTION_LINES} lines; split each into named "
+        "steps:\n" + "\n".join(offenders)
+    )

@@ -37,7 +37,17 @@ def one_error_line(result, match):
 def test_help_lists_every_command():
     result = run("--help")
     assert result.exit_code == 0
-    for command in ("demo", "simulate", "calibrate", "localize", "track", "report"):
+    for command in (
+        "demo",
+        "simulate",
+        "calibrate",
+        "localize",
+        "track",
+        "report",
+        "render",
+        "drift",
+        "frc",
+    ):
         assert command in result.output
 
 
@@ -246,6 +256,29 @@ def test_picasso_format(run_dir, calibrated):
         assert {"frame", "x", "y", "z", "lpx", "lpy"} <= set(handle["locs"].dtype.names)
     info = list(yaml.safe_load_all((folder / "locs.yaml").read_text()))
     assert info[0]["Frames"] == gear.frames.shape[0]
+
+
+def test_thunderstorm_format_and_track_reads_it(run_dir, calibrated):
+    """localize --format thunderstorm writes ThunderSTORM's columns; track reads that file and
+    measures the gear's rotation as from latentz's own table (gamma within 2 mrad of truth)."""
+    from latentz.io.thunderstorm import THUNDERSTORM_COLUMNS
+
+    folder, gear = run_dir
+    target = folder / "ts.csv"
+    result = run(
+        "localize", folder / "movie.tif", "--calibration", calibrated, "--roi-size", 15,
+        "--format", "thunderstorm", "--quiet", "--out", target,
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    table = pd.read_csv(target)
+    assert tuple(table.columns) == THUNDERSTORM_COLUMNS
+    assert set(table["frame"]) == set(range(1, gear.frames.shape[0] + 1))
+    assert not list(folder.glob("ts.latentz.parquet"))
+    result = run("track", target, "--n-sim", 200, "--quiet", "--out", folder / "ts-motion.csv")
+    assert result.exit_code == 0, result.output
+    motion, _ = read_table(folder / "ts-motion.csv")
+    truth = gear.gear.motion_about(np.zeros(3))
+    np.testing.assert_allclose(motion["gamma"], truth["gamma"].to_numpy(), atol=2e-3)
 
 
 def test_kill_9_then_resume(run_dir, calibrated, tmp_path):

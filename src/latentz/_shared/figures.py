@@ -9,7 +9,7 @@ from pathlib import Path
 
 from latentz._shared.atomic import write_bytes_atomic
 
-__all__ = ["figure_png", "mark_empty", "save_figure"]
+__all__ = ["figure_png", "image_png", "mark_empty", "save_figure"]
 
 
 def _png(fig, dpi: int) -> bytes:
@@ -25,6 +25,15 @@ def figure_png(fig, *, dpi: int = 110) -> bytes:
     png = _png(fig, dpi)
     plt.close(fig)
     return png
+
+
+def image_png(rgb) -> bytes:
+    """An RGB image array (rows x columns x 3, uint8) as PNG bytes, pixel for pixel."""
+    import matplotlib.image
+
+    buffer = io.BytesIO()
+    matplotlib.image.imsave(buffer, rgb, format="png")
+    return buffer.getvalue()
 
 
 def mark_empty(ax, text: str) -> None:

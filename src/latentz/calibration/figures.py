@@ -57,11 +57,6 @@ def figure2(
     p = check_int("particle", particle, minimum=0)
     if p >= n:
         raise ValueError(f"Expected `particle` < {n} (number of calibration particles), got {p}.")
-    local, tr = cal.local, cal.traces
-    px = cal.camera.pixel_size_nm
-    z = local.z_nm[p]
-    zf = local.z_f[p]
-    zz = np.linspace(np.nanmin(z), np.nanmax(z), 400)
     cols = 3 + len(shapes)
     fig, axes = plt.subplots(
         3,
@@ -70,7 +65,27 @@ def figure2(
         height_ratios=[3, 1.2, 1.2],
         squeeze=False,
     )
-    ax = axes[0, 0]
+    _position_panel(fig, axes[:, 0], cal, p)
+    _shift_panels(axes[:, 1:3], cal, p)
+    _amplitude_panel(axes[:, 3], cal, p)
+    for col, shape in enumerate(shapes, start=4):
+        _shape_panel(axes[:, col], cal, p, shape, letter=chr(ord("e") + col - 4))
+    for col in range(1, cols + 1):
+        axes[0, col].set_xlabel("z (nm)")
+    for ax in axes[:, 1:].flat:  # a few z ticks, so that none overlap (not on worded panels)
+        if not ax.texts:
+            ax.xaxis.set_major_locator(MaxNLocator(4))
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def _position_panel(fig: Any, column: np.ndarray, cal: Calibration, p: int) -> None:
+    """(a): the apparent position x', y' (nm) through focus coloured by z, about the position
+    at z_f; the column's lower axes left empty."""
+    tr, px, z = cal.traces, cal.camera.pixel_size_nm, cal.local.z_nm[p]
+    zf = cal.local.z_f[p]
+    ax = column[0]
     x0, y0 = (m[p : p + 1](np.array([zf]))[0] for m in (_abs_model(cal, "x"), _abs_model(cal, "y")))
     # positions relative to the particle's position at z_f, so no axis needs an offset
     sc = ax.scatter((tr["x"][p] - x0) * px, (tr["y"][p] - y0) * px, c=z, s=10, cmap="viridis")
@@ -84,26 +99,23 @@ def figure2(
     bar = fig.colorbar(sc, ax=ax, location="bottom", pad=0.2)
     bar.set_label("z (nm)")
     for row in (1, 2):
-        axes[row, 0].axis("off")
+        column[row].axis("off")
 
+
+def _shift_panels(axes: np.ndarray, cal: Calibration, p: int) -> None:
+    """(b, c): Δx'(z), Δy'(z) (nm) with their polynomial, residuals and σ_Δ, in the columns of
+    ``axes`` (3, 2)."""
+    local, tr, px = cal.local, cal.traces, cal.camera.pixel_size_nm
+    z, zf = local.z_nm[p], local.z_f[p]
+    zz = np.linspace(np.nanmin(z), np.nanmax(z), 400)
     panels = [
-        (
-            "(b) Δx'",
-            (tr["x"][p] - _abs_model(cal, "x")[p : p + 1](np.array([zf]))[0]) * px,
-            local.dx[p : p + 1](zz[None])[0] * px,
-            local.sigma_dx[p] * px,
-            "σ_Δx' (nm)",
-        ),
-        (
-            "(c) Δy'",
-            (tr["y"][p] - _abs_model(cal, "y")[p : p + 1](np.array([zf]))[0]) * px,
-            local.dy[p : p + 1](zz[None])[0] * px,
-            local.sigma_dy[p] * px,
-            "σ_Δy' (nm)",
-        ),
+        ("(b) Δx'", "x", local.dx, local.sigma_dx[p] * px, "σ_Δx' (nm)"),
+        ("(c) Δy'", "y", local.dy, local.sigma_dy[p] * px, "σ_Δy' (nm)"),
     ]
-    for col, (title, data, curve, sigma, slabel) in enumerate(panels, start=1):
-        top, mid, bottom = axes[0, col], axes[1, col], axes[2, col]
+    for col, (title, axis, model, sigma, slabel) in enumerate(panels):
+        data = (tr[axis][p] - _abs_model(cal, axis)[p : p + 1](np.array([zf]))[0]) * px
+        curve = model[p : p + 1](zz[None])[0] * px
+        top, mid, bottom = axes[:, col]
         top.plot(z, data, "k.", ms=3)
         # the model only over the z its data cover, on the data's scale
         seen = np.isfinite(data)
@@ -112,14 +124,18 @@ def figure2(
         _limit_to(top, data)
         top.set_title(title)
         top.set_ylabel(f"{title[4:]} (nm)")
-        model = local.dx if col == 1 else local.dy
         mid.plot(z, data - model[p : p + 1](z[None])[0] * px, "k.", ms=2)
         mid.set_ylabel("residual (nm)")
         bottom.plot(z, sigma, "b-")
         bottom.set(xlabel="z (nm)", ylabel=slabel)
 
-    top, mid, bottom = axes[0, 3], axes[1, 3], axes[2, 3]
-    amp = tr["amplitude"][p]
+
+def _amplitude_panel(column: np.ndarray, cal: Calibration, p: int) -> None:
+    """(d): the peak amplitude A(z) with its peak model, z_f and residuals."""
+    local = cal.local
+    z, zf = local.z_nm[p], local.z_f[p]
+    top, mid, bottom = column
+    amp = cal.traces["amplitude"][p]
     top.plot(z, amp, "k.", ms=3)
     dom = local.amplitude.domain[p]
     za = np.linspace(dom[0], dom[1], 200)
@@ -132,40 +148,36 @@ def figure2(
     mid.set_ylabel("residual (e⁻ / px)")
     bottom.axis("off")
 
-    for col, shape in enumerate(shapes, start=4):
-        top, mid, bottom = axes[0, col], axes[1, col], axes[2, col]
-        model = local.shapes[shape]
-        values = model.values[p]
-        top.plot(z, values, "k.", ms=3)
-        lo, hi = model.inverse.domain[p]
-        used = " — used" if shape == cal.shape else ""
-        top.set_title(f"({chr(ord('e') + col - 4)}) {_LABELS[shape]}{used}")
-        top.set_ylabel(f"{_LABELS[shape]} (dimensionless)")
-        finite_sigma = np.isfinite(model.sigma_z[p])
-        if not (model.inverse.valid[p] and finite_sigma.any()):
-            reason = f"{_LABELS[shape]} has no monotonic range\nfor this particle: no z from it"
-            mark_empty(mid, reason)
-            mark_empty(bottom, "no σ_z: see above")
-            continue
-        ss = np.linspace(lo, hi, 300)
-        zs = model.inverse[p : p + 1](ss[None])[0]
-        # the inverse model only where it maps into the z this particle was imaged over
-        shown = (zs >= np.nanmin(z)) & (zs <= np.nanmax(z))
-        top.plot(np.where(shown, zs, np.nan), ss, "g-", lw=1.5)
-        _limit_to(top, values)
-        res = z - model.inverse[p : p + 1](values[None])[0]
-        mid.plot(z, np.where(finite_sigma, res, np.nan), "k.", ms=2)
-        mid.set_ylabel("z residual (nm)")
-        bottom.plot(z, model.sigma_z[p], "b-")
-        bottom.set(xlabel="z (nm)", ylabel="σ_z (nm)")
-    for col in range(1, cols + 1):
-        axes[0, col].set_xlabel("z (nm)")
-    for ax in axes[:, 1:].flat:  # a few z ticks, so that none overlap (not on worded panels)
-        if not ax.texts:
-            ax.xaxis.set_major_locator(MaxNLocator(4))
-    fig.tight_layout()
-    _save(fig, path)
-    return fig
+
+def _shape_panel(column: np.ndarray, cal: Calibration, p: int, shape: str, letter: str) -> None:
+    """(e, f, …): a shape parameter through focus with its inverse model over the monotonic
+    range, the z residuals and σ_z; a worded panel where it has no monotonic range."""
+    z = cal.local.z_nm[p]
+    top, mid, bottom = column
+    model = cal.local.shapes[shape]
+    values = model.values[p]
+    top.plot(z, values, "k.", ms=3)
+    lo, hi = model.inverse.domain[p]
+    used = " — used" if shape == cal.shape else ""
+    top.set_title(f"({letter}) {_LABELS[shape]}{used}")
+    top.set_ylabel(f"{_LABELS[shape]} (dimensionless)")
+    finite_sigma = np.isfinite(model.sigma_z[p])
+    if not (model.inverse.valid[p] and finite_sigma.any()):
+        reason = f"{_LABELS[shape]} has no monotonic range\nfor this particle: no z from it"
+        mark_empty(mid, reason)
+        mark_empty(bottom, "no σ_z: see above")
+        return
+    ss = np.linspace(lo, hi, 300)
+    zs = model.inverse[p : p + 1](ss[None])[0]
+    # the inverse model only where it maps into the z this particle was imaged over
+    shown = (zs >= np.nanmin(z)) & (zs <= np.nanmax(z))
+    top.plot(np.where(shown, zs, np.nan), ss, "g-", lw=1.5)
+    _limit_to(top, values)
+    res = z - model.inverse[p : p + 1](values[None])[0]
+    mid.plot(z, np.where(finite_sigma, res, np.nan), "k.", ms=2)
+    mid.set_ylabel("z residual (nm)")
+    bottom.plot(z, model.sigma_z[p], "b-")
+    bottom.set(xlabel="z (nm)", ylabel="σ_z (nm)")
 
 
 def _limit_to(ax: Any, data: np.ndarray) -> None:

@@ -622,21 +622,14 @@ class Calibration:
         located = np.isfinite(cols["x"]) & np.isfinite(cols["y"])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
-        model = self.local.shapes[shape]
-        theta = self.local.theta
-        ref, ref_scatter = model.amplitude_ref[p], 0.0
-        if uses_amplitude(shape) and amplitude_reference == "particle":
-            check_columns("spots", spots, ("particle",))
-            ref = _track_reference(shape, spots, cols, theta)
-        elif uses_amplitude(shape):  # the reference about the spot's nearest particle
-            ref, ref_scatter = self._particle_references()[p], self.reference_field.scatter
+        ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
         s = shape_value(
             shape,
             cols["wx"],
             cols["wy"],
             cols["rho"],
             cols["amplitude"],
-            theta=theta,
+            theta=self.local.theta,
             amplitude_ref=ref,
         )
         z, shifts, in_range = self._locate(s, p, cols, located)
@@ -645,33 +638,11 @@ class Calibration:
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
         at = _row_weights(self.local.z_nm, p, z)
-        model_part = self._model_sigma("z", p, z, at)
-        if all(c in spots.columns for c in _ERROR_COLUMNS):
-            params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
-            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
-            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
-            fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
-            z_err = np.hypot(self.noise_scale * fit_part, model_part)
-        else:
-            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
-        if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
-            slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
-            z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
-        px = self.camera.pixel_size_nm
-        out = spots.copy()
-        zq = np.where(in_range, z, 0.0)
+        z_err = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
+        out, px = spots.copy(), self.camera.pixel_size_nm
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
-            d_slope = self._error_model(axis)[2]
-            shift = delta[p](zq) if shifts is None else shifts[axis]
-            slope = d_slope[p](zq)
-            model_d = self._model_sigma(axis, p, z, at)
-            if f"{axis}_err" in spots:
-                own = spots[f"{axis}_err"].to_numpy(float)
-            else:
-                own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
-            field_d = self._field_sigma(axis, z, distance)  # nm
-            lack = _interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-            err = combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
+            shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
+            err = self._lateral_error(axis, spots, p, z, in_range, at, z_err, distance)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
@@ -684,6 +655,71 @@ class Calibration:
         out["in_range"] = in_range
         out["cal_particle"] = p
         return out
+
+    def _amplitude_reference(
+        self, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
+    ) -> tuple[np.ndarray, float]:
+        """Each spot's A_{ρ=ρ0} for the shape value (:meth:`apply`'s ``amplitude_reference``),
+        and the relative scatter of the calibration particles' reference about it."""
+        shape = self.shape
+        if uses_amplitude(shape) and amplitude_reference == "particle":
+            check_columns("spots", spots, ("particle",))
+            return _track_reference(shape, spots, cols, self.local.theta), 0.0
+        if uses_amplitude(shape):  # the reference about the spot's nearest particle
+            return self._particle_references()[p], self.reference_field.scatter
+        return self.local.shapes[shape].amplitude_ref[p], 0.0
+
+    def _z_error(
+        self,
+        spots: pd.DataFrame,
+        s: np.ndarray,
+        p: np.ndarray,
+        z: np.ndarray,
+        in_range: np.ndarray,
+        at: tuple[np.ndarray, np.ndarray, np.ndarray],
+        ref: np.ndarray,
+        ref_scatter: float,
+    ) -> np.ndarray:
+        """σ_z (nm) before the field model's part: the spot's own (propagated from its fit
+        errors where it carries them, else the calibration's at z) with the particle's model
+        error, and the amplitude reference's scatter."""
+        model_part = self._model_sigma("z", p, z, at)
+        if all(c in spots.columns for c in _ERROR_COLUMNS):
+            params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
+            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
+            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
+            fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
+            z_err = np.hypot(self.noise_scale * fit_part, model_part)
+        else:
+            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
+        if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
+            slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
+            z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
+        return z_err
+
+    def _lateral_error(
+        self,
+        axis: str,
+        spots: pd.DataFrame,
+        p: np.ndarray,
+        z: np.ndarray,
+        in_range: np.ndarray,
+        at: tuple[np.ndarray, np.ndarray, np.ndarray],
+        z_err: np.ndarray,
+        distance: np.ndarray,
+    ) -> np.ndarray:
+        """σ of the corrected ``axis`` position (nm): the spot's own, the particle's model
+        error and lack of fit, σ_z through the correction's slope, and the field model's."""
+        px = self.camera.pixel_size_nm
+        slope = self._error_model(axis)[2][p](np.where(in_range, z, 0.0))
+        model_d = self._model_sigma(axis, p, z, at)
+        if f"{axis}_err" in spots:
+            own = spots[f"{axis}_err"].to_numpy(float)
+        else:
+            own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
+        field_d = self._field_sigma(axis, z, distance)  # nm
+        lack = _interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
+        return combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
 
 
 def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.ndarray:

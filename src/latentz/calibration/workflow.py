@@ -8,9 +8,10 @@ substrate tilt so that z = 0 is the focal surface of the calibration particles a
 
 from __future__ import annotations
 
+import functools
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,7 +24,7 @@ from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
 from latentz.calibration.depth import depth_ratio_per_nm
 from latentz.calibration.heights import particle_heights
-from latentz.calibration.local import LocalOptions, fit_local
+from latentz.calibration.local import LocalModels, LocalOptions, fit_local
 from latentz.calibration.result import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.roi import (
     MIN_ROI,
@@ -171,58 +172,18 @@ def calibrate(
         check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_CHOICES)
     device = resolve_device(device)
-    if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
-        stacks = [stacks]
-    loaded = []
-    for s, stack in enumerate(stacks):
-        if isinstance(stack, (str, os.PathLike)):
-            from latentz.io import read_stack
-
-            stack = read_stack(stack)
-        stack = check_array(f"stacks[{s}]", stack, ndim=3)
-        if stack.shape[0] != z.size:
-            raise ValueError(
-                f"Stack {s} has {stack.shape[0]} planes but `z_nm` has {z.size} values."
-            )
-        loaded.append(stack)
-    _check_offset(camera, loaded)
-    order = np.argsort(z)
-    loaded = [stack[order] for stack in loaded]
+    loaded, z = _load_stacks(stacks, z, camera)
     if "field_shape" not in options:
-        offsets = np.zeros((len(loaded), 2)) if stage_offsets_px is None else stage_offsets_px
-        offsets = np.asarray(offsets, dtype=np.float64).reshape(len(loaded), 2)
-        options["field_shape"] = (
-            int(max(o[1] + st.shape[1] for o, st in zip(offsets, loaded, strict=True))),
-            int(max(o[0] + st.shape[2] for o, st in zip(offsets, loaded, strict=True))),
-        )
+        options["field_shape"] = _pooled_field_shape(loaded, stage_offsets_px)
     limit = min(roi_limit(st.shape[1:]) for st in loaded)
     if roi_size is not None:
-        roi_size = check_int("roi_size", roi_size, minimum=MIN_ROI)
-        if positions is None and roi_size > limit:
-            side = min(min(st.shape[1:]) for st in loaded)
-            raise ValueError(
-                f"roi_size={roi_size} does not fit the {side} px calibration images (a particle "
-                f"must lie a pixel inside the edge): use roi_size <= {limit}, or None."
-            )
+        roi_size = _check_roi_size(roi_size, loaded, limit, explicit=positions is not None)
 
-    def run(roi: int) -> tuple[Calibration, list]:
-        """One calibration with ``roi``, and the warnings it gave (to say once, not per pass)."""
-        failure = None
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                cal = _calibrate_once(roi)
-            except Exception as exc:  # said after its warnings, outside the recording
-                failure = exc
-        if failure is not None:
-            _say(caught)
-            raise failure
-        return cal, caught
-
-    def _calibrate_once(roi: int) -> Calibration:
+    def once(roi: int) -> Calibration:
+        """Traces of every particle in a ``roi``-pixel ROI, then the calibration from them."""
         traces = extract_traces(
             loaded,
-            z[order],
+            z,
             camera=camera,
             roi_size=roi,
             positions=positions,
@@ -243,11 +204,72 @@ def calibrate(
             **options,
         )
 
+    run = functools.partial(_recorded, once)
     if roi_size is not None:
         cal, caught = run(roi_size)
         _say(caught)
         return cal
     return _calibrate_roi(run, min(_FIRST_ROI, limit), limit)
+
+
+def _load_stacks(stacks: Any, z: np.ndarray, camera: Camera) -> tuple[list[np.ndarray], np.ndarray]:
+    """The stacks (arrays or paths; one or a sequence) checked against ``z`` and the camera
+    offset, with their planes and ``z`` (nm) in increasing z."""
+    if isinstance(stacks, (str, os.PathLike)) or (hasattr(stacks, "ndim") and stacks.ndim == 3):
+        stacks = [stacks]
+    loaded = []
+    for s, stack in enumerate(stacks):
+        if isinstance(stack, (str, os.PathLike)):
+            from latentz.io import read_stack
+
+            stack = read_stack(stack)
+        stack = check_array(f"stacks[{s}]", stack, ndim=3)
+        if stack.shape[0] != z.size:
+            raise ValueError(
+                f"Stack {s} has {stack.shape[0]} planes but `z_nm` has {z.size} values."
+            )
+        loaded.append(stack)
+    _check_offset(camera, loaded)
+    order = np.argsort(z)
+    return [stack[order] for stack in loaded], z[order]
+
+
+def _pooled_field_shape(stacks: list[np.ndarray], stage_offsets_px: Any) -> tuple[int, int]:
+    """(H, W) in pixels of the field that holds every stack at its stage offset."""
+    offsets = np.zeros((len(stacks), 2)) if stage_offsets_px is None else stage_offsets_px
+    offsets = np.asarray(offsets, dtype=np.float64).reshape(len(stacks), 2)
+    return (
+        int(max(o[1] + st.shape[1] for o, st in zip(offsets, stacks, strict=True))),
+        int(max(o[0] + st.shape[2] for o, st in zip(offsets, stacks, strict=True))),
+    )
+
+
+def _check_roi_size(roi_size: Any, stacks: list[np.ndarray], limit: int, explicit: bool) -> int:
+    """``roi_size`` checked to fit the images (``limit`` pixels) unless the particles'
+    positions are ``explicit``."""
+    roi_size = check_int("roi_size", roi_size, minimum=MIN_ROI)
+    if not explicit and roi_size > limit:
+        side = min(min(st.shape[1:]) for st in stacks)
+        raise ValueError(
+            f"roi_size={roi_size} does not fit the {side} px calibration images (a particle "
+            f"must lie a pixel inside the edge): use roi_size <= {limit}, or None."
+        )
+    return roi_size
+
+
+def _recorded(once: Callable[[int], Calibration], roi: int) -> tuple[Calibration, list]:
+    """One calibration with ``roi``, and the warnings it gave (to say once, not per pass)."""
+    failure = None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            cal = once(roi)
+        except Exception as exc:  # said after its warnings, outside the recording
+            failure = exc
+    if failure is not None:
+        _say(caught)
+        raise failure
+    return cal, caught
 
 
 def _say(caught: list) -> None:
@@ -341,56 +363,22 @@ def calibrate_traces(
     n_terms = check_int("n_terms", n_terms, minimum=1)
     cull_threshold = check_positive("cull_threshold", cull_threshold)
     neighbours = check_int("neighbours", neighbours, minimum=1)
-    if len(traces) == 0:
-        raise ValueError("No calibration particles: the traces are empty.")
-    check_z_step(float(np.median(np.diff(traces.z_nm))), _depth_ratio(traces, camera))
-    theta = None
-    if shape in (None, "auto", "auto_A"):
-        try:
-            theta = astigmatism_angle(traces["wx"], traces["wy"], traces["rho"])
-        except ValueError:
-            if shape is not None:
-                raise
-    if shape is None:
-        shapes = SHAPES if theta is not None else PAPER_SHAPES
-    else:
-        shapes = tuple(dict.fromkeys((*PAPER_SHAPES, shape)))
-    local = fit_local(traces, shapes, theta=theta, options=local_options)
+    _check_population(traces, camera)
+    theta = _astigmatism_angle(traces, shape)
+    local = fit_local(traces, _candidates(shape, theta), theta=theta, options=local_options)
     px = camera.pixel_size_nm
     position = traces.position()
     substrate_nm = position * px
-    converged = np.mean(traces["converged"], axis=1)
-    hard = {
-        "fit_failed": converged < 0.8,
-        "never_in_focus": ~local.in_focus,
-        "crowded": traces.crowded,
-    }
+    hard = _hard_failures(traces, local)
     _check_kept(np.any(np.stack(list(hard.values())), axis=0), _reasons(hard), roi_size)
     choice = None
     if shape is None:
         usable = ~np.any(np.stack(list(hard.values())), axis=0)
-        level = _tilt_plane(substrate_nm, local.z_f, usable, tilt)
-        table = score_shapes(
-            local.shifted(level(*substrate_nm.T)),
-            traces,
-            usable,
-            roi_size=roi_size or _FIRST_ROI,
-            readnoise=camera.readnoise,
-            positions=position,
-        )
-        shape, choice = choose(table)
+        shape, choice = _choose_shape(traces, local, usable, tilt, camera, roi_size)
     hard["no_monotonic_range"] = ~local.shapes[shape].inverse.valid
-    failed = np.any(np.stack(list(hard.values())), axis=0)
-    plane = _tilt_plane(substrate_nm, local.z_f, ~failed, tilt)
-    culled, reason = failed, np.array([""] * len(traces), dtype=object)
-    scores = pd.DataFrame(index=np.arange(len(traces)))
-    if cull and np.count_nonzero(~failed) >= _MIN_POPULATION:
-        shifted = local.shifted(plane(*substrate_nm.T))
-        features = particle_features(traces, shifted, shape, position * px, ~failed, k=neighbours)
-        culled, reason, scores = cull_particles(features, hard, threshold=cull_threshold)
-        plane = _tilt_plane(substrate_nm, local.z_f, ~culled, tilt)
-    else:
-        reason = _reasons(hard)
+    culled, reason, scores, plane = _cull(
+        traces, local, shape, hard, tilt, px, cull=cull, threshold=cull_threshold, k=neighbours
+    )
     _check_kept(culled, reason, roi_size)
     own = np.zeros(len(traces))
     height_fit: dict[str, Any] = {"applied": False}
@@ -430,6 +418,95 @@ def calibrate_traces(
     )
     _check_noise(cal)
     return cal
+
+
+def _check_population(traces: Traces, camera: Camera) -> None:
+    """Refuse empty traces; warn on a z step too coarse for the depth of focus."""
+    if len(traces) == 0:
+        raise ValueError("No calibration particles: the traces are empty.")
+    check_z_step(float(np.median(np.diff(traces.z_nm))), _depth_ratio(traces, camera))
+
+
+def _astigmatism_angle(traces: Traces, shape: str | None) -> float | None:
+    """The astigmatism angle (rad) where ``shape`` may need it (None, "auto", "auto_A"); None
+    where it cannot be measured and no angle-free shape was asked for."""
+    if shape not in (None, "auto", "auto_A"):
+        return None
+    try:
+        return astigmatism_angle(traces["wx"], traces["wy"], traces["rho"])
+    except ValueError:
+        if shape is not None:
+            raise
+        return None
+
+
+def _candidates(shape: str | None, theta: float | None) -> tuple[str, ...]:
+    """The shape parameters to model: every one where none was asked for (the angle-free ones
+    where the angle is unknown), else the paper's and the one asked for."""
+    if shape is None:
+        return SHAPES if theta is not None else PAPER_SHAPES
+    return tuple(dict.fromkeys((*PAPER_SHAPES, shape)))
+
+
+def _hard_failures(traces: Traces, local: LocalModels) -> dict[str, np.ndarray]:
+    """Per-particle flags of outright failure: fits that failed, no focus, crowded."""
+    converged = np.mean(traces["converged"], axis=1)
+    return {
+        "fit_failed": converged < 0.8,
+        "never_in_focus": ~local.in_focus,
+        "crowded": traces.crowded,
+    }
+
+
+def _choose_shape(
+    traces: Traces,
+    local: LocalModels,
+    usable: np.ndarray,
+    tilt: bool,
+    camera: Camera,
+    roi_size: int | None,
+) -> tuple[str, Any]:
+    """The shape parameter with the best expected σ_z, scored on the ``usable`` particles'
+    levelled models, and why (:func:`latentz.calibration.shape_choice.choose`)."""
+    position = traces.position()
+    substrate_nm = position * camera.pixel_size_nm
+    level = _tilt_plane(substrate_nm, local.z_f, usable, tilt)
+    table = score_shapes(
+        local.shifted(level(*substrate_nm.T)),
+        traces,
+        usable,
+        roi_size=roi_size or _FIRST_ROI,
+        readnoise=camera.readnoise,
+        positions=position,
+    )
+    return choose(table)
+
+
+def _cull(
+    traces: Traces,
+    local: LocalModels,
+    shape: str,
+    hard: dict[str, np.ndarray],
+    tilt: bool,
+    px: float,
+    *,
+    cull: bool,
+    threshold: float,
+    k: int,
+) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, TiltPlane]:
+    """Culled flags, their reasons, the culling scores and the focal plane of the kept
+    particles: outright failures (``hard``), and outliers of the population where there is
+    one (at least :data:`_MIN_POPULATION` usable particles) and ``cull`` is on."""
+    substrate_nm = traces.position() * px
+    failed = np.any(np.stack(list(hard.values())), axis=0)
+    plane = _tilt_plane(substrate_nm, local.z_f, ~failed, tilt)
+    scores = pd.DataFrame(index=np.arange(len(traces)))
+    if not (cull and np.count_nonzero(~failed) >= _MIN_POPULATION):
+        return failed, _reasons(hard), scores, plane
+    shifted = local.shifted(plane(*substrate_nm.T))
+    features = particle_features(traces, shifted, shape, substrate_nm, ~failed, k=k)
+    culled, reason, scores = cull_particles(features, hard, threshold=threshold)
+    return culled, reason, scores, _tilt_plane(substrate_nm, local.z_f, ~culled, tilt)
 
 
 #: ``noise_scale`` below which :func:`calibrate` warns: the images' variance under half the

@@ -13,6 +13,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -21,6 +22,11 @@ from latentz._shared.figures import figure_png
 from latentz.report import Section, write_report
 from latentz.report.sections import DOF_NAMES
 from latentz.validation.accuracy import error_figure, focal_plane, rmse
+
+if TYPE_CHECKING:
+    from latentz.calibration import Calibration
+    from latentz.camera import Camera
+    from latentz.simulate import AberrationMap, CalibrationDataset, GearMovie, Optics
 
 __all__ = ["DemoSize", "run_demo"]
 
@@ -167,15 +173,7 @@ def run_demo(
     import matplotlib
 
     matplotlib.use("Agg")
-    from latentz import simulate as sim
-    from latentz.calibration import ApertureLattice, calibrate
-    from latentz.camera import Camera
-    from latentz.cli.steps import motion_outputs, track_tables
     from latentz.io import write_table
-    from latentz.localization import localize
-    from latentz.localization.quality import assess
-    from latentz.motion import motion_uncertainty
-    from latentz.report import sections
 
     size = QUICK if quick else FULL
     out = Path(out_dir)
@@ -183,30 +181,98 @@ def run_demo(
     log: list[str] = []  # results
     timings: list[str] = []  # seconds per step
     start = t0 = time.perf_counter()
-    field = (size.field_px, size.field_px)
-    aberrations = sim.AberrationMap.default(seed=seed, field_shape=field)
-    true_pixel_nm = 129.3  # the sample pixel the aperture array measures (nominal 130 nm)
-    optics = sim.Optics(magnification=6.5e3 / true_pixel_nm)
-    nominal = Camera(offset=100.0, gain=0.5, readnoise=1.5, pixel_size_nm=130.0)
+    scope = _microscope(size, seed)
+    camera, aperture_cal = _apertures(scope, size, seed, log)
+    t0 = _timed(timings, "apertures", t0)
+    stacks = _calibration_stacks(scope, size, seed)
+    t0 = _timed(timings, "simulate calibration", t0)
+    cal = _calibrate_stacks(stacks, camera, size, progress, log)
+    cal.save(out / "calibration.h5")
+    t0 = _timed(timings, "calibrate", t0)
+    gear, static_frames = _gear(scope, size, seed)
+    t0 = _timed(timings, "simulate gear", t0)
+    locs = _localize_3d(gear.frames, cal, camera, gear.origin, progress)
+    static = _localize_3d(static_frames, cal, camera, gear.origin, progress)
+    write_table(locs, out / "locs.parquet")
+    t0 = _timed(timings, "localize", t0)
+    errors = _localization_errors(locs, gear, stacks, camera.pixel_size_nm, log)
+    write_table(errors, out / "errors_vs_truth.csv")
+    tables, within = _motion(locs, static, gear, size, seed, out, log)
+    t0 = _timed(timings, "track", t0)
+    summary = "\n\n".join(log) + "\n\nTime per step: " + "; ".join(timings) + "."
+    parts = [
+        _calibration_quality(cal, errors),
+        Section("Summary of the simulated run", summary),
+        _psf_section(scope),
+        *_calibration_sections(cal, aperture_cal),
+        *_localization_sections(locs, errors),
+        *_motion_sections(tables, within),
+    ]
+    write_report(
+        [p for p in parts if p is not None],
+        out / "report.html",
+        title=f"latentz demo ({'quick' if quick else 'full'}, seed {seed}): {out.resolve().name}",
+        png_dir=out / "figures",
+    )
+    _timed(timings, "report", t0)
+    log.append("time per step: " + "; ".join(timings))
+    log.append(f"total: {time.perf_counter() - start:.1f} s; report: {out / 'report.html'}")
+    return log
 
-    # 1. An aperture array of known pitch through focus: the magnification from its lattice in
-    # focus, and (Supp. Fig. 9) its own calibration, whose field dependence differs from the
-    # particles'.
+
+@dataclass(frozen=True)
+class _Microscope:
+    """The simulated microscope: its optics and field-dependent aberrations, the camera as
+    the user knows it (nominal 130 nm pixel), and the true sample pixel (nm)."""
+
+    optics: Optics
+    aberrations: AberrationMap
+    nominal: Camera
+    true_pixel_nm: float
+
+
+def _microscope(size: DemoSize, seed: int) -> _Microscope:
+    """A microscope like the paper's over the demo's field."""
+    from latentz import simulate as sim
+    from latentz.camera import Camera
+
+    field = (size.field_px, size.field_px)
+    true_pixel_nm = 129.3  # the sample pixel the aperture array measures (nominal 130 nm)
+    return _Microscope(
+        optics=sim.Optics(magnification=6.5e3 / true_pixel_nm),
+        aberrations=sim.AberrationMap.default(seed=seed, field_shape=field),
+        nominal=Camera(offset=100.0, gain=0.5, readnoise=1.5, pixel_size_nm=130.0),
+        true_pixel_nm=true_pixel_nm,
+    )
+
+
+def _apertures(
+    scope: _Microscope, size: DemoSize, seed: int, log: list[str]
+) -> tuple[Camera, Calibration]:
+    """An aperture array of known pitch through focus: the camera with the pixel size from its
+    lattice in focus, and (Supp. Fig. 9) its own calibration, whose field dependence differs
+    from the particles'."""
+    from latentz import simulate as sim
+    from latentz.calibration import ApertureLattice, calibrate
+    from latentz.camera import Camera
+    from latentz.localization import localize
+
     aperture_z = np.arange(-2000.0, 2001.0, 2 * size.z_step_nm)
     apertures = sim.aperture_array(
         pitch_nm=5000.0,
         shape=(256, 256),
-        pixel_size_nm=true_pixel_nm,
+        pixel_size_nm=scope.true_pixel_nm,
         z_nm=aperture_z,
-        optics=optics,
-        aberrations=aberrations,
-        camera=nominal,
+        optics=scope.optics,
+        aberrations=scope.aberrations,
+        camera=scope.nominal,
         seed=seed,
     )
     in_focus = int(np.argmin(np.abs(aperture_z)))
-    spots = localize(apertures.frames[in_focus : in_focus + 1], camera=nominal, roi_size=9)
+    spots = localize(apertures.frames[in_focus : in_focus + 1], camera=scope.nominal, roi_size=9)
     lattice = ApertureLattice.from_estimate(spots["x"], spots["y"], pitch_nm=5000.0)
     pixel_nm = float(lattice.pixel_size_nm)
+    nominal = scope.nominal
     camera = Camera(
         offset=nominal.offset,
         gain=nominal.gain,
@@ -215,7 +281,8 @@ def run_demo(
     )
     log.append(
         f"pixel size {pixel_nm:.3f} ± {lattice.pixel_size_err_nm:.3f} nm "
-        f"(true {true_pixel_nm} nm, error {100 * (pixel_nm / true_pixel_nm - 1):+.3f} %)"
+        f"(true {scope.true_pixel_nm} nm, error "
+        f"{100 * (pixel_nm / scope.true_pixel_nm - 1):+.3f} %)"
     )
     aperture_cal = calibrate(
         apertures.frames,
@@ -226,20 +293,31 @@ def run_demo(
         roi_size=ROI_PX,
         stage_offsets_px=[apertures.origin[::-1]],
     )
-    t0 = _timed(timings, "apertures", t0)
+    return camera, aperture_cal
 
-    # 2. Calibration stacks through focus at several stage positions.
+
+def _calibration_stacks(scope: _Microscope, size: DemoSize, seed: int) -> CalibrationDataset:
+    """Calibration stacks through focus at several stage positions."""
+    from latentz import simulate as sim
+
     z_nm = np.arange(-size.z_half_range_nm, size.z_half_range_nm + 1, size.z_step_nm)
-    stacks = sim.calibration_dataset(
+    return sim.calibration_dataset(
         n_particles=size.cal_particles,
         z_nm=z_nm,
         n_stage_positions=size.stage_positions,
-        optics=optics,
-        aberrations=aberrations,
-        camera=nominal,
+        optics=scope.optics,
+        aberrations=scope.aberrations,
+        camera=scope.nominal,
         seed=seed,
     )
-    t0 = _timed(timings, "simulate calibration", t0)
+
+
+def _calibrate_stacks(
+    stacks: CalibrationDataset, camera: Camera, size: DemoSize, progress: bool, log: list[str]
+) -> Calibration:
+    """The calibration from the simulated stacks, and a line on what it kept."""
+    from latentz.calibration import calibrate
+
     cal = calibrate(
         list(stacks.stacks),
         stacks.z_nm,
@@ -249,21 +327,24 @@ def run_demo(
         roi_size=ROI_PX,
         progress=progress,
     )
-    cal.save(out / "calibration.h5")
     log.append(
         f"calibration: {len(cal.kept)} of {len(cal.culled)} particles kept, tilt "
         f"{cal.tilt_mrad:.2f} mrad (true {stacks.tilt_mrad:.2f})"
     )
-    t0 = _timed(timings, "calibrate", t0)
+    return cal
 
-    # 3. The gear: a static segment (for drift), then the motion cycles.
+
+def _gear(scope: _Microscope, size: DemoSize, seed: int) -> tuple[GearMovie, np.ndarray]:
+    """The gear movie's motion cycles, and a static segment (for drift) of its first frame."""
+    from latentz import simulate as sim
+
     gear = sim.gear_movie(
         n_cycles=size.gear_cycles,
         n_particles=size.gear_particles,
         gear_diameter_um=size.gear_diameter_um,
-        optics=optics,
-        aberrations=aberrations,
-        camera=nominal,
+        optics=scope.optics,
+        aberrations=scope.aberrations,
+        camera=scope.nominal,
         seed=seed,
     )
     static_truth = gear.truth[gear.truth["frame"] == 0]
@@ -273,36 +354,52 @@ def run_demo(
         ],
         frame_shape=gear.frames.shape[1:],
         origin=gear.origin,
-        optics=optics,
-        aberrations=aberrations,
-        camera=nominal,
+        optics=scope.optics,
+        aberrations=scope.aberrations,
+        camera=scope.nominal,
         seed=seed + 1,
     )
-    t0 = _timed(timings, "simulate gear", t0)
-    r0, c0 = gear.origin
+    return gear, static_frames
 
-    def localize_3d(frames: np.ndarray) -> pd.DataFrame:
-        found = localize(frames, camera=camera, roi_size=ROI_PX, progress=progress)
-        # noise detections: widths far (2×) outside those the calibration saw
-        low, high = cal.width_range_px
-        widths = found[["wx", "wy"]]
-        plausible = ((widths >= low / 2) & (widths <= 2 * high)).all(axis=1)
-        found = found[found["converged"] & ~found["close_pair"] & plausible]
-        field_spots = found.assign(x=found["x"] + c0, y=found["y"] + r0)
-        # the verdict `localize(calibration=cal)` gives: widths and ρ off the calibration's
-        # curves (a bead cut by the frame's edge, two overlapping) are not `good`
-        located = assess(cal.apply(field_spots), cal)
-        good = located["good"].to_numpy()
-        return located[good].assign(x=found["x"].to_numpy()[good], y=found["y"].to_numpy()[good])
 
-    locs = localize_3d(gear.frames)
-    static = localize_3d(static_frames)
-    write_table(locs, out / "locs.parquet")
-    t0 = _timed(timings, "localize", t0)
+def _localize_3d(
+    frames: np.ndarray,
+    cal: Calibration,
+    camera: Camera,
+    origin: tuple[int, int],
+    progress: bool,
+) -> pd.DataFrame:
+    """The good 3D localizations of ``frames`` (cut at ``origin`` (row, column) from the
+    field), with x, y in the frames' pixels."""
+    from latentz.localization import localize
+    from latentz.localization.quality import assess
 
+    r0, c0 = origin
+    found = localize(frames, camera=camera, roi_size=ROI_PX, progress=progress)
+    # noise detections: widths far (2×) outside those the calibration saw
+    low, high = cal.width_range_px
+    widths = found[["wx", "wy"]]
+    plausible = ((widths >= low / 2) & (widths <= 2 * high)).all(axis=1)
+    found = found[found["converged"] & ~found["close_pair"] & plausible]
+    field_spots = found.assign(x=found["x"] + c0, y=found["y"] + r0)
+    # the verdict `localize(calibration=cal)` gives: widths and ρ off the calibration's
+    # curves (a bead cut by the frame's edge, two overlapping) are not `good`
+    located = assess(cal.apply(field_spots), cal)
+    good = located["good"].to_numpy()
+    return located[good].assign(x=found["x"].to_numpy()[good], y=found["y"].to_numpy()[good])
+
+
+def _localization_errors(
+    locs: pd.DataFrame,
+    gear: GearMovie,
+    stacks: CalibrationDataset,
+    pixel_nm: float,
+    log: list[str],
+) -> pd.DataFrame:
+    """The gear localizations' errors against truth (:func:`_errors`), and a line on their
+    RMS with and without the correction and the magnification error."""
     pairs = _match_truth(locs, gear.truth)
     errors = _errors(pairs, pixel_nm, gear.centre_px, focal_plane(stacks.truth))
-    write_table(errors, out / "errors_vs_truth.csv")
     in_range = float(locs["in_range"].mean())
     scaled, raw_scaled = _rms_after_scale(errors), _rms_after_scale(errors, "raw_")
     rms = rmse(errors)
@@ -313,18 +410,45 @@ def run_demo(
         f"also removing the magnification error: x {scaled[0]:.1f}, y {scaled[1]:.1f} nm "
         f"(uncorrected x {raw_scaled[0]:.1f}, y {raw_scaled[1]:.1f} nm)"
     )
+    return errors
 
-    # 4. Six degrees of freedom; the static segment measures drift.
+
+def _motion(
+    locs: pd.DataFrame,
+    static: pd.DataFrame,
+    gear: GearMovie,
+    size: DemoSize,
+    seed: int,
+    out: Path,
+    log: list[str],
+) -> tuple[dict[str, pd.DataFrame], pd.DataFrame]:
+    """Six degrees of freedom (the static segment after the cycles measures drift), written
+    beside ``out``; and each against truth (:func:`_motion_against_truth`)."""
+    from latentz.cli.steps import motion_outputs, track_tables
+    from latentz.io import write_table
+
     static = static.assign(frame=static["frame"] + int(locs["frame"].max()) + 1)
     both = pd.concat([locs, static], ignore_index=True)
     static_ids = sorted(static["frame"].unique())
     tables = track_tables(both, n_sim=size.n_sim, seed=seed, static_frames=static_ids)
-    tracks, motion, unc = tables["tracks"], tables["motion"], tables["uncertainty"]
     paths = motion_outputs(out / "motion.csv")
-    write_table(tracks, paths["tracks"])
-    write_table(motion, paths["motion"])
-    write_table(unc.reset_index(names="dof"), paths["uncertainty"])
+    write_table(tables["tracks"], paths["tracks"])
+    write_table(tables["motion"], paths["motion"])
+    write_table(tables["uncertainty"].reset_index(names="dof"), paths["uncertainty"])
     write_table(tables["table1"].reset_index(names="dof"), paths["table1"])
+    within = _motion_against_truth(tables, gear, size, seed, log)
+    write_table(within, out / "motion_vs_truth.csv")
+    return tables, within
+
+
+def _motion_against_truth(
+    tables: dict[str, pd.DataFrame], gear: GearMovie, size: DemoSize, seed: int, log: list[str]
+) -> pd.DataFrame:
+    """Per degree of freedom: RMS error against the gear's true motion, the Monte Carlo σ,
+    and the errors against each cycle's own σ; and a line summarising them."""
+    from latentz.motion import motion_uncertainty
+
+    tracks, motion, unc = tables["tracks"], tables["motion"], tables["uncertainty"]
     truth_motion = gear.motion_of(tracks)
     # each cycle against its own σ: localization errors differ from cycle to cycle
     cycle_sigma = motion_uncertainty(
@@ -346,7 +470,6 @@ def run_demo(
             "fraction_within_1_sigma": [float(np.mean(np.abs(z_score[d]) <= 1)) for d in dofs],
         }
     )
-    write_table(within, out / "motion_vs_truth.csv")
     log.append(
         f"motion: {len(motion)} transitions, {tracks['particle'].nunique()} tracks; gamma "
         f"{compare['gamma'].mean() * 1e3:.3f} mrad per cycle (true "
@@ -358,38 +481,58 @@ def run_demo(
             for row in within.itertuples()
         )
     )
-    t0 = _timed(timings, "track", t0)
+    return within
 
-    # 5. The report.
-    gallery = sim.psf_gallery(optics=optics, aberrations=aberrations)
-    parts = [
-        sections.quality_section(
-            cal,
-            name="simulated calibration stacks",
-            truth={
-                "gear particles against simulated truth": errors,
-                "the same, magnification error removed": _scale_removed(errors).drop(
-                    columns=["err_z_nm", "z_err_nm"]
-                ),
-            },
-        ),
-        Section(
-            "Summary of the simulated run",
-            "\n\n".join(log) + "\n\nTime per step: " + "; ".join(timings) + ".",
-        ),
-        Section(
-            "Simulated microscope",
-            "Pupil-function PSFs through focus at several field positions.",
-            figures={"PSF gallery": figure_png(gallery)},
-            captions={
-                "PSF gallery": "One row per field position: an x–z section through the PSF "
-                "(left) and x–y images at five defocus values. The shape changes with z "
-                "(astigmatism) and with the field position: what the calibration learns."
-            },
-        ),
+
+def _calibration_quality(cal: Calibration, errors: pd.DataFrame) -> Section | None:
+    """The calibration's quality section, with the gear particles' errors against truth."""
+    from latentz.report import sections
+
+    return sections.quality_section(
+        cal,
+        name="simulated calibration stacks",
+        truth={
+            "gear particles against simulated truth": errors,
+            "the same, magnification error removed": _scale_removed(errors).drop(
+                columns=["err_z_nm", "z_err_nm"]
+            ),
+        },
+    )
+
+
+def _psf_section(scope: _Microscope) -> Section:
+    """The simulated microscope's PSFs through focus across the field."""
+    from latentz import simulate as sim
+
+    gallery = sim.psf_gallery(optics=scope.optics, aberrations=scope.aberrations)
+    return Section(
+        "Simulated microscope",
+        "Pupil-function PSFs through focus at several field positions.",
+        figures={"PSF gallery": figure_png(gallery)},
+        captions={
+            "PSF gallery": "One row per field position: an x–z section through the PSF "
+            "(left) and x–y images at five defocus values. The shape changes with z "
+            "(astigmatism) and with the field position: what the calibration learns."
+        },
+    )
+
+
+def _calibration_sections(cal: Calibration, aperture_cal: Calibration) -> list[Section | None]:
+    """The calibration, its field dependence, and the particles against the apertures."""
+    from latentz.report import sections
+
+    return [
         sections.calibration_section(cal, name="simulated calibration stacks"),
         sections.widefield_section(cal, name="simulated calibration stacks"),
         sections.emitter_arrays_section({"calibration particles": cal, "apertures": aperture_cal}),
+    ]
+
+
+def _localization_sections(locs: pd.DataFrame, errors: pd.DataFrame) -> list[Section | None]:
+    """The gear's localizations, and their errors against truth."""
+    from latentz.report import sections
+
+    return [
         sections.localization_section(locs, name="simulated gear movie"),
         Section(
             "Localization against truth: simulated gear movie",
@@ -411,7 +554,21 @@ def run_demo(
                 )
             },
         ),
-        sections.motion_section(tracks, motion, unc, tables["table1"], name="simulated gear"),
+    ]
+
+
+def _motion_sections(tables: dict[str, pd.DataFrame], within: pd.DataFrame) -> list[Section | None]:
+    """The gear's motion, the readout timing, and the motion against truth."""
+    from latentz.report import sections
+
+    return [
+        sections.motion_section(
+            tables["tracks"],
+            tables["motion"],
+            tables["uncertainty"],
+            tables["table1"],
+            name="simulated gear",
+        ),
         sections.readout_section(),
         Section(
             "Motion against truth: simulated gear",
@@ -425,13 +582,3 @@ def run_demo(
             tables={"Per degree of freedom": _truth_table(within)},
         ),
     ]
-    write_report(
-        [p for p in parts if p is not None],
-        out / "report.html",
-        title=f"latentz demo ({'quick' if quick else 'full'}, seed {seed}): {out.resolve().name}",
-        png_dir=out / "figures",
-    )
-    _timed(timings, "report", t0)
-    log.append("time per step: " + "; ".join(timings))
-    log.append(f"total: {time.perf_counter() - start:.1f} s; report: {out / 'report.html'}")
-    return log

@@ -309,14 +309,15 @@ def calibrate(
     "--out",
     required=True,
     type=click.Path(dir_okay=False, path_type=Path),
-    help="Localization table (.parquet, .csv, or .hdf5 with --format picasso).",
+    help="Localization table (.parquet, .csv, .hdf5 with --format picasso, .csv with --format "
+    "thunderstorm).",
 )
 @click.option(
     "--format",
     "fmt",
     default=None,
-    type=click.Choice(["parquet", "csv", "picasso"]),
-    help="Output format (default from the suffix).",
+    type=click.Choice(["parquet", "csv", "picasso", "thunderstorm"]),
+    help="Output format (default from the suffix: .parquet, .csv latentz's, .hdf5 Picasso's).",
 )
 @click.option(
     "--roi-size", type=int, default=None, help="ROI side, pixels (odd); default: the calibration's."
@@ -477,6 +478,136 @@ def track(
     click.echo(f"{out}: {len(motion)} transitions")
 
 
+def _locs_argument(func):
+    func = click.option(
+        "--pixel-size-nm",
+        type=float,
+        default=None,
+        help="Camera pixel size, nm, for a Picasso file without one in its YAML.",
+    )(func)
+    return click.argument("locs", type=click.Path(dir_okay=False, exists=True))(func)
+
+
+def _out_file(help_text: str):
+    return click.option(
+        "--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help=help_text
+    )
+
+
+@main.command()
+@_locs_argument
+@_out_file(
+    "Image: .png (RGB with scale and z colour bars, x-y and x-z views) or .tif (float density "
+    "and mean z, pixel size in the metadata)."
+)
+@click.option("--pixel-nm", default=10.0, show_default=True, help="Image pixel, nm.")
+@click.option(
+    "--color", default="z", show_default=True, help="Column for the colour ('z', or 'none')."
+)
+@click.option(
+    "--blur",
+    default="precision",
+    show_default=True,
+    help="'precision' (each localization's reported error), a width in nm, or 'none'.",
+)
+@click.option("--all-rows", is_flag=True, help="Draw every localization, not only the good ones.")
+def render(locs, pixel_size_nm, out, pixel_nm, color, blur, all_rows) -> None:
+    """Render localizations (latentz, Picasso or ThunderSTORM files) as a super-resolution image."""
+    from latentz._shared.preflight import check_output_file
+    from latentz.analysis import RENDER_SUFFIXES, write_render
+    from latentz.cli.steps import read_used_localizations
+
+    check_output_file(out, RENDER_SUFFIXES)
+    width = None if blur == "none" else (blur if blur == "precision" else _number(blur, "--blur"))
+    table, said = read_used_localizations(locs, pixel_size_nm, good_only=not all_rows)
+    write_render(
+        table, out, pixel_nm=pixel_nm, color=None if color == "none" else color, blur=width
+    )
+    click.echo(f"{out}: {len(table)} localizations drawn" + (f" ({said})" if said else ""))
+
+
+def _number(text: str, option: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(
+            f"{option} takes 'precision', a number of nm or 'none', got {text!r}."
+        ) from None
+
+
+@main.command()
+@_locs_argument
+@_out_file("Corrected table (.parquet or .csv); the drift figure goes beside it (.drift.png).")
+@click.option("--method", default="rcc", show_default=True, type=click.Choice(["rcc", "fiducials"]))
+@click.option("--segment-frames", default=1000, show_default=True, help="RCC: frames per segment.")
+@click.option("--pixel-nm", default=20.0, show_default=True, help="RCC: image pixel, nm.")
+@click.option(
+    "--fiducial-radius-nm",
+    default=300.0,
+    show_default=True,
+    help="Fiducials: how far a fiducial may wander (drift included), nm.",
+)
+def drift(locs, pixel_size_nm, out, method, segment_frames, pixel_nm, fiducial_radius_nm) -> None:
+    """Correct drift in x, y, z by RCC or fiducials; the drift removed is kept as columns."""
+    from latentz._shared.figures import save_figure
+    from latentz._shared.preflight import check_output_file
+    from latentz._shared.provenance import provenance
+    from latentz.analysis import correct_drift, drift_figure
+    from latentz.io import read_localizations, write_table
+
+    check_output_file(out, (".parquet", ".pq", ".csv"))
+    table, _ = read_localizations(locs, pixel_size_nm=pixel_size_nm)
+    options = {
+        "method": method,
+        "segment_frames": segment_frames,
+        "pixel_nm": pixel_nm,
+        "fiducial_radius_nm": fiducial_radius_nm,
+    }
+    corrected = correct_drift(table, **options)
+    figure = out.with_name(out.with_suffix("").name + ".drift.png")
+    write_table(corrected, out, metadata=provenance({"localizations": locs}, options))
+    save_figure(drift_figure(corrected), figure)
+    removed = corrected.groupby("frame")[["drift_x_nm", "drift_y_nm", "drift_z_nm"]].first()
+    span = removed.max() - removed.min()
+    click.echo(
+        f"{out}: drift removed spans {span.iloc[0]:.1f}, {span.iloc[1]:.1f}, {span.iloc[2]:.1f} "
+        f"nm in x, y, z ({corrected.attrs['drift']}); figure {figure}"
+    )
+
+
+@main.command()
+@_locs_argument
+@click.option("--pixel-nm", default=5.0, show_default=True, help="Image pixel, nm.")
+@click.option(
+    "--split",
+    default="blocks",
+    show_default=True,
+    type=click.Choice(["blocks", "random", "odd_even"]),
+    help="How the data are halved: 20 blocks of frames, each localization, or frame parity.",
+)
+@click.option(
+    "--out", type=click.Path(dir_okay=False, path_type=Path), help="Figure of the curve (.png)."
+)
+@click.option("--all-rows", is_flag=True, help="Use every localization, not only the good ones.")
+def frc(locs, pixel_size_nm, pixel_nm, split, out, all_rows) -> None:
+    """Resolution by Fourier ring correlation (1/7 threshold) of two halves of the data."""
+    from latentz._shared.figures import save_figure
+    from latentz._shared.preflight import check_output_file
+    from latentz.analysis import frc as ring_correlation
+    from latentz.cli.steps import read_used_localizations
+
+    if out is not None:
+        check_output_file(out, (".png",))
+    table, said = read_used_localizations(locs, pixel_size_nm, good_only=not all_rows)
+    result = ring_correlation(table, pixel_nm=pixel_nm, split=split)
+    if out is not None:
+        save_figure(result.figure(), out)
+    click.echo(
+        f"FRC resolution {result.resolution_nm:.1f} nm ({split} halves, {pixel_nm:g} nm pixels, "
+        f"{len(table)} localizations)" + (f"; {said}" if said else "")
+    )
+
+
 @main.command()
 @click.argument("run_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path))
@@ -507,4 +638,3 @@ def demo(out_dir: Path, quick: bool, seed: int, quiet: bool) -> None:
     summary = run_demo(out_dir, quick=quick, seed=seed, progress=_progress(quiet))
     for line in summary:
         click.echo(line)
-

@@ -6,10 +6,11 @@ provenance, resumable chunking, atomic outputs.
 
 from __future__ import annotations
 
+import functools
 import os
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -17,12 +18,22 @@ import pandas as pd
 from latentz._shared.provenance import provenance
 from latentz._shared.validate import check_choice
 
+if TYPE_CHECKING:
+    from latentz.calibration import Calibration
+    from latentz.camera import Camera
+
 __all__ = [
+    "LOCALIZATION_FORMATS",
     "localize_movies",
     "track_file",
     "motion_outputs",
+    "read_used_localizations",
     "report_run",
 ]
+
+
+#: Formats ``localize`` writes: latentz's Parquet and CSV, Picasso's HDF5, ThunderSTORM's CSV.
+LOCALIZATION_FORMATS = ("parquet", "csv", "picasso", "thunderstorm")
 
 
 def localize_movies(
@@ -55,19 +66,16 @@ def localize_movies(
     :func:`latentz.localize`'s tracking mode within each chunk. ``device`` ("auto", "cpu",
     "cuda") is where detection and fits run (:func:`latentz._shared.engine.resolve_device`).
     """
-    import dask.array as da
-
     from latentz._shared.engine import resolve_device
-    from latentz._shared.sanity import LatentzWarning, check_pixel_size, check_widths
+    from latentz._shared.sanity import check_pixel_size, check_widths
     from latentz.calibration import Calibration
     from latentz.cli.chunked import run_chunked
     from latentz.cli.options import camera_from_options
-    from latentz.io import read_stack
-    from latentz.localization import check_camera_offset, localize
-    from latentz.localization.quality import assess, check_calibration_fits
+    from latentz.localization import check_camera_offset
+    from latentz.localization.quality import check_calibration_fits
 
     if fmt is not None:
-        check_choice("fmt", fmt, ("parquet", "csv", "picasso"))
+        check_choice("fmt", fmt, LOCALIZATION_FORMATS)
     device = resolve_device(device)
     target = Path(out)
     if fmt is None and target.suffix.lower() == ".hdf5":
@@ -78,11 +86,7 @@ def localize_movies(
     check_pixel_size(movie_camera.pixel_size_nm, cal.camera.pixel_size_nm)
     if roi_size is None:  # the fitted widths, hence the shape value, depend on the ROI
         roi_size = cal.roi_size
-    stacks = [read_stack(m) for m in movies]
-    if len({s.shape[1:] for s in stacks}) != 1:
-        raise ValueError("Every movie must have the same frame size.")
-    frames = da.concatenate(stacks, axis=0) if len(stacks) > 1 else stacks[0]
-    bounds = pd.Series([s.shape[0] for s in stacks]).cumsum().to_numpy()
+    frames, bounds = _read_movies(movies)
     options = {
         "roi_size": roi_size,
         "threshold": threshold,
@@ -93,38 +97,26 @@ def localize_movies(
     meta = provenance({"movies": movies, "calibration": calibration}, options)
     # the physical sanity checks speak once for the run, not once per chunk
     check_camera_offset(movie_camera, frames)
-
-    def process(start: int, stop: int) -> pd.DataFrame:
-        # read the chunk here (the file is open in this process), fit it where `scheduler` says
-        block = np.asarray(frames[start:stop].compute(scheduler="threads"))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", LatentzWarning)
-            spots = localize(
-                block,
-                camera=movie_camera,
-                roi_size=roi_size,
-                threshold=threshold,
-                method=cal.method,
-                scheduler=scheduler,
-                track=track,
-                device=device,
-            )
-            spots["frame"] = spots["frame"] + start
-            located = assess(cal.apply(spots), cal, roi_size=roi_size)
-        located.insert(
-            1,
-            "movie",
-            [str(movies[i]) for i in bounds.searchsorted(located["frame"], side="right")],
-        )
-        return located
-
-    manifest = {"inputs": meta["inputs"], "options": options}
-    table_path = target if fmt != "picasso" else target.with_suffix(".parquet")
+    process = functools.partial(
+        _localize_chunk,
+        frames,
+        cal=cal,
+        camera=movie_camera,
+        names=[str(m) for m in movies],
+        bounds=bounds,
+        roi_size=roi_size,
+        threshold=threshold,
+        scheduler=scheduler,
+        track=track,
+        device=device,
+    )
+    converted = fmt in ("picasso", "thunderstorm")
+    table_path = target if not converted else target.with_name(target.stem + ".latentz.parquet")
     table = run_chunked(
         frames.shape[0],
         process,
         table_path,
-        manifest=manifest,
+        manifest={"inputs": meta["inputs"], "options": options},
         chunk_frames=chunk_frames,
         resume=resume,
         metadata=meta,
@@ -132,20 +124,93 @@ def localize_movies(
         finish=check_calibration_fits,
     )
     check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
-    if fmt == "picasso":
-        from latentz.io.picasso import write_picasso
+    if fmt == "thunderstorm":
+        from latentz.io.thunderstorm import write_thunderstorm
 
         table_path.unlink()
-        write_picasso(
-            table,
-            target,
-            width=frames.shape[2],
-            height=frames.shape[1],
-            n_frames=frames.shape[0],
-            pixel_size_nm=cal.camera.pixel_size_nm,
-            info={"latentz": meta},
-        )
+        write_thunderstorm(table, target, pixel_size_nm=cal.camera.pixel_size_nm)
+    if fmt == "picasso":
+        _to_picasso(table, table_path, target, frames.shape, cal.camera.pixel_size_nm, meta)
     return table
+
+
+def _read_movies(movies: list[str | os.PathLike]) -> tuple[Any, np.ndarray]:
+    """The movies as one lazy (n_frames, H, W) array, and the frame each one ends before."""
+    import dask.array as da
+
+    from latentz.io import read_stack
+
+    stacks = [read_stack(m) for m in movies]
+    if len({s.shape[1:] for s in stacks}) != 1:
+        raise ValueError("Every movie must have the same frame size.")
+    frames = da.concatenate(stacks, axis=0) if len(stacks) > 1 else stacks[0]
+    return frames, pd.Series([s.shape[0] for s in stacks]).cumsum().to_numpy()
+
+
+def _localize_chunk(
+    frames: Any,
+    start: int,
+    stop: int,
+    *,
+    cal: Calibration,
+    camera: Camera,
+    names: list[str],
+    bounds: np.ndarray,
+    roi_size: int,
+    threshold: float | None,
+    scheduler: Any,
+    track: bool,
+    device: str,
+) -> pd.DataFrame:
+    """Frames ``start:stop`` localized, corrected by ``cal`` and assessed, with the name of the
+    movie each spot comes from; the per-chunk sanity warnings are silenced (said per run)."""
+    from latentz._shared.sanity import LatentzWarning
+    from latentz.localization import localize
+    from latentz.localization.quality import assess
+
+    # read the chunk here (the file is open in this process), fit it where `scheduler` says
+    block = np.asarray(frames[start:stop].compute(scheduler="threads"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LatentzWarning)
+        spots = localize(
+            block,
+            camera=camera,
+            roi_size=roi_size,
+            threshold=threshold,
+            method=cal.method,
+            scheduler=scheduler,
+            track=track,
+            device=device,
+        )
+        spots["frame"] = spots["frame"] + start
+        located = assess(cal.apply(spots), cal, roi_size=roi_size)
+    movie = [names[i] for i in bounds.searchsorted(located["frame"], side="right")]
+    located.insert(1, "movie", movie)
+    return located
+
+
+def _to_picasso(
+    table: pd.DataFrame,
+    table_path: Path,
+    target: Path,
+    shape: tuple[int, ...],
+    pixel_size_nm: float,
+    meta: dict[str, Any],
+) -> None:
+    """Write ``table`` as a Picasso file ``target`` for movies of ``shape`` (n_frames, H, W),
+    in place of the chunked table at ``table_path``."""
+    from latentz.io.picasso import write_picasso
+
+    table_path.unlink()
+    write_picasso(
+        table,
+        target,
+        width=shape[2],
+        height=shape[1],
+        n_frames=shape[0],
+        pixel_size_nm=pixel_size_nm,
+        info={"latentz": meta},
+    )
 
 
 def motion_outputs(out: str | os.PathLike) -> dict[str, Path]:
@@ -253,7 +318,7 @@ def track_file(
     localization table, or a movie that ``calibration`` localizes."""
     import tempfile
 
-    from latentz.io import read_table, write_table
+    from latentz.io import read_localizations, write_table
 
     inputs = {"localizations": locs_path}
     for role, path in (("static", static), ("calibration", calibration)):
@@ -261,7 +326,7 @@ def track_file(
             if not Path(path).exists():
                 raise FileNotFoundError(f"No such {role} file: {path}")
             inputs[role] = path
-    locs, _ = read_table(locs_path)
+    locs, _ = read_localizations(locs_path)
     if static is not None:
         with tempfile.TemporaryDirectory() as folder:
             options["static_locs"] = _static_locs(static, calibration, Path(folder))
@@ -275,6 +340,26 @@ def track_file(
     write_table(tables["table1"].reset_index(names="dof"), paths["table1"])
     write_table(tables["motion"], paths["motion"], metadata=meta)
     return tables["motion"]
+
+
+def read_used_localizations(
+    path: str | os.PathLike, pixel_size_nm: float | None = None, *, good_only: bool = True
+) -> tuple[pd.DataFrame, str]:
+    """A localization file in any format (:func:`latentz.io.read_localizations`), its in-range
+    rows (all rows of 2D data, where none has a z), only the good ones unless ``good_only`` is
+    False, and what was dropped, in words."""
+    from latentz.io import read_localizations
+    from latentz.localization.quality import good_rows
+
+    table, _ = read_localizations(path, pixel_size_nm=pixel_size_nm)
+    if "in_range" in table and table["in_range"].any():
+        table = table[table["in_range"].astype(bool)]
+    said = ""
+    if good_only:
+        table, said = good_rows(table)
+    if table.empty:
+        raise ValueError(f"{Path(path).name} holds no in-range localizations to use.")
+    return table, said
 
 
 def report_run(run_dir: str | os.PathLike, out: str | os.PathLike) -> Path:

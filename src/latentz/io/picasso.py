@@ -17,7 +17,7 @@ import pandas as pd
 from latentz._shared.atomic import atomic_path, write_text_atomic
 from latentz._shared.validate import check_columns
 
-__all__ = ["write_picasso", "PICASSO_FIELDS"]
+__all__ = ["write_picasso", "read_picasso", "PICASSO_FIELDS"]
 
 # (Picasso field, latentz column, dtype): the fields that Picasso's tools read for 2D/3D rendering.
 PICASSO_FIELDS: tuple[tuple[str, str, str], ...] = (
@@ -77,3 +77,37 @@ def write_picasso(
     yaml_path = target.with_suffix(".yaml")
     write_text_atomic(yaml_path, yaml.safe_dump_all(documents, default_flow_style=False))
     return target, yaml_path
+
+
+def read_picasso(path: str | os.PathLike, *, pixel_size_nm: float | None = None) -> pd.DataFrame:
+    """A Picasso HDF5 file (``/locs``, its YAML beside it) as a latentz table: frame, x, y, wx,
+    wy, x_err, y_err (camera pixels), x_nm, y_nm, x_err_nm, y_err_nm, z_nm (NaN without z),
+    photons, background, and ``in_range`` (a z was measured). The pixel size is the YAML's
+    "Pixelsize" unless ``pixel_size_nm`` is given."""
+    import h5py
+    import yaml
+
+    source = Path(path)
+    with h5py.File(source, "r") as handle:
+        if "locs" not in handle:
+            raise ValueError(f"{source.name} is not a Picasso file: it has no /locs dataset.")
+        records = handle["locs"][...]
+    if pixel_size_nm is None:
+        sidecar = source.with_suffix(".yaml")
+        documents = list(yaml.safe_load_all(sidecar.read_text())) if sidecar.exists() else []
+        sizes = [d["Pixelsize"] for d in documents if isinstance(d, dict) and "Pixelsize" in d]
+        if not sizes:
+            raise ValueError(
+                f"{source.name}: no Pixelsize in {sidecar.name}; give the pixel size in nm "
+                "(--pixel-size-nm)."
+            )
+        pixel_size_nm = float(sizes[0])
+    names = records.dtype.names
+    table = pd.DataFrame({col: records[name] for name, col, _ in PICASSO_FIELDS if name in names})
+    table = table.astype({c: np.float64 for c in table.columns if c != "frame"})
+    if "z_nm" not in table:
+        table["z_nm"] = np.nan
+    for column in ("x", "y", "x_err", "y_err"):
+        table[f"{column}_nm"] = table[column] * pixel_size_nm
+    table["in_range"] = np.isfinite(table["z_nm"])
+    return table

@@ -185,6 +185,55 @@ def _localize_chunks(
     return table
 
 
+def _settings(
+    calibration: Calibration | None,
+    camera: Camera | None,
+    roi_size: int | None,
+    method: str | None,
+) -> tuple[Camera | None, int, str]:
+    """The camera, ROI side (pixels) and fit method: as given, else the calibration's, else
+    the defaults (no camera, 11 px, "mle")."""
+    if calibration is not None:
+        from latentz.calibration import Calibration
+
+        if not isinstance(calibration, Calibration):
+            raise TypeError(
+                "Expected `calibration` to be a latentz Calibration, got "
+                f"{type(calibration).__name__}."
+            )
+        camera = calibration.camera if camera is None else camera
+        roi_size = calibration.roi_size if roi_size is None else roi_size
+        method = calibration.method if method is None else method
+    roi_size = 11 if roi_size is None else roi_size
+    method = "mle" if method is None else method
+    if camera is not None and not isinstance(camera, Camera):
+        raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
+    return camera, roi_size, method
+
+
+def _chunk_frames(chunk_frames: int | None, device: str, shape: tuple[int, ...]) -> int:
+    """Frames per chunk: as given, else as many (n, H, W) frames as fill the chunk's bytes
+    (8x more on the GPU)."""
+    if chunk_frames is None:
+        chunk_bytes = _CHUNK_BYTES * (8 if device == "cuda" else 1)
+        chunk_frames = max(1, chunk_bytes // (8 * shape[1] * shape[2]))
+    return check_int("chunk_frames", chunk_frames, minimum=1)
+
+
+def _check_frames(shape: tuple[int, ...], camera: Camera | None, roi_size: int) -> None:
+    """Refuse an even ROI or one larger than the frames, and a flatfield of another size."""
+    if roi_size % 2 == 0 or roi_size > min(shape[1:]):
+        raise ValueError(
+            f"Expected `roi_size` to be odd and at most {min(shape[1:])}, got {roi_size}."
+        )
+    if camera is not None and camera.flatfield is not None:
+        if camera.flatfield.shape != shape[1:]:
+            raise ValueError(
+                f"The camera's flatfield {camera.flatfield.shape} does not match the frames "
+                f"{shape[1:]}."
+            )
+
+
 def localize(
     frames: Any,
     *,
@@ -259,40 +308,14 @@ def localize(
         cause. Rows are ordered by frame; ``attrs["roi_size"]`` records the ROI.
     """
     movie = as_frames(frames)
-    if calibration is not None:
-        from latentz.calibration import Calibration
-
-        if not isinstance(calibration, Calibration):
-            raise TypeError(
-                "Expected `calibration` to be a latentz Calibration, got "
-                f"{type(calibration).__name__}."
-            )
-        camera = calibration.camera if camera is None else camera
-        roi_size = calibration.roi_size if roi_size is None else roi_size
-        method = calibration.method if method is None else method
-    roi_size = 11 if roi_size is None else roi_size
-    method = "mle" if method is None else method
-    if camera is not None and not isinstance(camera, Camera):
-        raise TypeError(f"Expected `camera` to be a latentz Camera, got {type(camera).__name__}.")
+    camera, roi_size, method = _settings(calibration, camera, roi_size, method)
     check_choice("method", method, METHODS)
     device = resolve_device(device)
     roi_size = check_int("roi_size", roi_size, minimum=3)
     if camera is not None:
         check_camera_offset(camera, movie)
-    if chunk_frames is None:
-        chunk_bytes = _CHUNK_BYTES * (8 if device == "cuda" else 1)
-        chunk_frames = max(1, chunk_bytes // (8 * movie.shape[1] * movie.shape[2]))
-    chunk_frames = check_int("chunk_frames", chunk_frames, minimum=1)
-    if roi_size % 2 == 0 or roi_size > min(movie.shape[1:]):
-        raise ValueError(
-            f"Expected `roi_size` to be odd and at most {min(movie.shape[1:])}, got {roi_size}."
-        )
-    if camera is not None and camera.flatfield is not None:
-        if camera.flatfield.shape != movie.shape[1:]:
-            raise ValueError(
-                f"The camera's flatfield {camera.flatfield.shape} does not match the frames "
-                f"{movie.shape[1:]}."
-            )
+    chunk_frames = _chunk_frames(chunk_frames, device, movie.shape)
+    _check_frames(movie.shape, camera, roi_size)
     options = (camera, roi_size, threshold, method, sigma, device)
     if track:
         detect_every = check_int("detect_every", detect_every, minimum=1)

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from latentz._shared.figures import figure_png
+from latentz._shared.figures import figure_png, image_png
 from latentz.report import Section
 from latentz.report.calibration_quality import quality_section
 
@@ -148,10 +148,56 @@ def emitter_arrays_section(calibrations: dict) -> Section:
     )
 
 
+def _pixel_nm(locs: pd.DataFrame, finest: float, side_px: int) -> float:
+    """The finest of 1, 2, 5 x 10^k nm (at least ``finest``) that fits the localizations' field
+    in ``side_px`` pixels."""
+    span = max(np.ptp(locs["x_nm"]), np.ptp(locs["y_nm"]), 1.0)
+    for power in range(0, 6):
+        for step in (1, 2, 5):
+            pixel = step * 10.0**power
+            if pixel >= finest and span / pixel <= side_px:
+                return pixel
+    return 1e5
+
+
+def _seen(locs: pd.DataFrame) -> tuple[dict[str, bytes], dict[str, str], str]:
+    """The super-resolution picture and the FRC curve of good, in-range localizations, their
+    captions, and a sentence with the resolution (or why there is none)."""
+    from latentz.analysis import frc, render
+
+    usable = locs[np.isfinite(locs[["x_nm", "y_nm", "z_nm"]]).all(axis=1)]
+    if usable.empty:
+        return {}, {}, "No localization has a position in x, y and z to draw."
+    pixel = _pixel_nm(usable, 10.0, 900)
+    picture = f"Super-resolution image ({pixel:g} nm pixels)"
+    figures = {picture: image_png(render(usable, pixel_nm=pixel))}
+    captions = {
+        picture: "Top: the x–y view, each localization a Gaussian of its reported x, y error; "
+        "brightness is the density (saturating at the brightest 0.5 %), colour is z (bar at "
+        "the right). Bottom: the x–z side view on the same x axis, z up, blurred by the "
+        "reported x and z errors. The bar at the lower left of the x–y view gives the scale."
+    }
+    if len(usable) < 100:
+        return figures, captions, "Too few localizations (fewer than 100) for an FRC."
+    result = frc(usable, pixel_nm=_pixel_nm(usable, 5.0, 4096))
+    figures["Fourier ring correlation"] = figure_png(result.figure())
+    captions["Fourier ring correlation"] = (
+        "Correlation of two halves of the data (alternate blocks of frames, 20 in all) ring by "
+        "ring in Fourier space; the resolution is 1 / the frequency where it falls below 1/7. "
+        "Emitters seen in both halves make it optimistic; drift makes it pessimistic."
+    )
+    said = (
+        f"FRC resolution {result.resolution_nm:.1f} nm."
+        if np.isfinite(result.resolution_nm)
+        else "The FRC curve does not fall below 1/7: the resolution is finer than its pixels."
+    )
+    return figures, captions, said
+
+
 def localization_section(locs: pd.DataFrame, *, name: str = "") -> Section:
-    """Counts, the fraction in range, and histograms of z and of the uncertainties, over the
-    good rows (:func:`latentz.localization.quality.good_rows`; all in-range rows of older
-    tables)."""
+    """Counts, the fraction in range, histograms of z and of the uncertainties, the
+    super-resolution image and the FRC resolution, over the good rows
+    (:func:`latentz.localization.quality.good_rows`; all in-range rows of older tables)."""
     import matplotlib.pyplot as plt
 
     from latentz.localization.quality import good_rows
@@ -178,16 +224,19 @@ def localization_section(locs: pd.DataFrame, *, name: str = "") -> Section:
             "median reported σ_z (nm)": [ok["z_err_nm"].median()],
         }
     )
+    pictures, picture_captions, resolution = _seen(ok)
     return Section(
         _named("Localizations", name),
         "Spots outside the calibrated range of the shape parameter get no z (never "
         "extrapolated). The σ here are the uncertainties latentz reports; how well they describe "
         "the actual errors is in the calibration quality section at the top. "
-        + (dropped[0].upper() + dropped[1:] + "." if dropped else ""),
-        figures={"z and reported uncertainties": figure_png(fig)},
+        + (dropped[0].upper() + dropped[1:] + ". " if dropped else "")
+        + resolution,
+        figures={**pictures, "z and reported uncertainties": figure_png(fig)},
         captions={
+            **picture_captions,
             "z and reported uncertainties": "Histograms over the good, in-range localizations "
-            "of z and of the reported x and z uncertainties (the top 1 % clipped)."
+            "of z and of the reported x and z uncertainties (the top 1 % clipped).",
         },
         tables={"Summary": summary},
     )

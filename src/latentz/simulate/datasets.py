@@ -12,6 +12,7 @@ spherical aberration), so a calibration particle is in best focus at the piezo p
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -221,86 +222,29 @@ def calibration_dataset(
     origins = stage_origins(n_stage_positions, frame_shape, field_shape)
     rng = np.random.default_rng(seed)
 
-    counts = [len(a) for a in np.array_split(np.arange(n_particles), len(origins))]
     margin = max(8.0, diameter / optics.pixel_size_nm)
-    xy = np.concatenate(
-        [_place(rng, c, frame_shape, margin, min_spacing_px) for c in counts if c > 0]
-    )
-    stack = np.repeat(np.arange(len(origins)), counts)
-    diameters = np.clip(rng.normal(diameter, diameter_sd, n_particles), 0.5 * diameter, None)
-    n_bad = int(round(fraction * n_particles))
-    defect = np.full(n_particles, "none", dtype=object)
-    bad = rng.choice(n_particles, size=n_bad, replace=False)
-    defect[bad[: (n_bad + 1) // 2]] = "dimer"
-    defect[bad[(n_bad + 1) // 2 :]] = "large"
-    diameters = np.where(defect == "large", 2 * diameters, diameters)
-    signal = photons * (diameters / diameter) ** 3
-    signal = np.where(defect == "large", signal / 2.0, signal)  # surface-limited dye loading
-
-    field_x = xy[:, 0] + origins[stack, 1]
-    field_y = xy[:, 1] + origins[stack, 0]
-    rows, cols = field_shape
+    place = _placements(rng, n_particles, origins, frame_shape, margin, min_spacing_px)
+    sizes = _particle_sizes(rng, n_particles, diameter, diameter_sd, fraction, photons)
+    diameters, signal = sizes["diameter_nm"].to_numpy(), sizes["photons"].to_numpy()
+    xy, stack = place[["x", "y"]].to_numpy(), place["stack"].to_numpy()
     slope = math.tan(tilt * 1e-3) * optics.pixel_size_nm
-    z_surface = -diameter / 2 + slope * (
-        (field_x - (cols - 1) / 2) * math.cos(direction)
-        + (field_y - (rows - 1) / 2) * math.sin(direction)
+    heights = _heights(place, diameters, diameter, (slope, direction), optics, aberrations)
+    z_centre = heights["z_nm"].to_numpy()
+    defect = sizes["defect"].to_numpy(dtype=object)
+    lobes = _lobes(xy, diameters, defect, rng.uniform(0, np.pi, n_particles), optics)
+    emitters = _through_focus(lobes, z, z_centre, signal, diameters, stack)
+    render = functools.partial(
+        _stack,
+        n_z=z.size,
+        frame_shape=frame_shape,
+        optics=optics,
+        aberrations=aberrations,
+        background=background,
+        camera=camera,
+        rng=rng,
     )
-    z_centre = z_surface + diameters / 2
-    # Best focus of each particle (a dimer's lobes are in the same plane as a single particle).
-    focus = best_focus_defocus_nm(optics, aberrations, field_x, field_y, diameter_nm=diameters)
-
-    # One emitter instance per particle (two for dimers) and plane.
-    angle = rng.uniform(0, np.pi, n_particles)
-    lobes = []
-    for i in range(n_particles):
-        if defect[i] == "dimer":
-            dx = 0.5 * diameters[i] / optics.pixel_size_nm * math.cos(angle[i])
-            dy = 0.5 * diameters[i] / optics.pixel_size_nm * math.sin(angle[i])
-            lobes += [(i, xy[i, 0] + dx, xy[i, 1] + dy), (i, xy[i, 0] - dx, xy[i, 1] - dy)]
-        else:
-            lobes.append((i, xy[i, 0], xy[i, 1]))
-    lobe_table = pd.DataFrame(lobes, columns=["particle", "x", "y"])
-    lobe_table["emitter"] = np.arange(len(lobe_table))
-    n_z = z.size
-    emitters = lobe_table.loc[lobe_table.index.repeat(n_z)].reset_index(drop=True)
-    emitters["frame"] = np.tile(np.arange(n_z), len(lobe_table))
-    p = emitters["particle"].to_numpy()
-    emitters["defocus_nm"] = z_centre[p] + z[emitters["frame"].to_numpy()]
-    emitters["photons"] = signal[p]
-    emitters["diameter_nm"] = diameters[p]
-    emitters["stack"] = stack[p]
-
-    stacks = []
-    for k, origin in enumerate(origins):
-        expected = render_expected(
-            emitters[emitters["stack"] == k],
-            n_frames=n_z,
-            frame_shape=frame_shape,
-            origin=(int(origin[0]), int(origin[1])),
-            optics=optics,
-            aberrations=aberrations,
-            background=background,
-        )
-        stacks.append(expose(expected, camera, rng, origin=(int(origin[0]), int(origin[1]))))
-
-    truth = pd.DataFrame(
-        {
-            "particle": np.arange(n_particles),
-            "stack": stack,
-            "x": xy[:, 0],
-            "y": xy[:, 1],
-            "field_x": field_x,
-            "field_y": field_y,
-            "z_surface_nm": z_surface,
-            "z_nm": z_centre,
-            "focus_defocus_nm": focus,
-            "z_focus_nm": focus - z_centre,
-            "diameter_nm": diameters,
-            "photons": signal,
-            "defect": pd.Categorical(defect, categories=DEFECT_KINDS),
-            "defective": defect != "none",
-        }
-    )
+    stacks = [render(emitters[emitters["stack"] == k], o) for k, o in enumerate(origins)]
+    truth = pd.concat([place, heights, sizes], axis=1)
     return CalibrationDataset(
         stacks=tuple(stacks),
         z_nm=z,
@@ -317,6 +261,157 @@ def calibration_dataset(
         seed=seed,
         field_shape=field_shape,
     )
+
+
+def _placements(
+    rng: np.random.Generator,
+    n: int,
+    origins: np.ndarray,
+    frame_shape: tuple[int, int],
+    margin: float,
+    spacing: float,
+) -> pd.DataFrame:
+    """``n`` particles split evenly among the stacks at field ``origins`` (row, column):
+    ``particle, stack``, ``x, y`` (stack pixels, :func:`_place`) and ``field_x, field_y``."""
+    counts = [len(a) for a in np.array_split(np.arange(n), len(origins))]
+    xy = np.concatenate([_place(rng, c, frame_shape, margin, spacing) for c in counts if c > 0])
+    stack = np.repeat(np.arange(len(origins)), counts)
+    return pd.DataFrame(
+        {
+            "particle": np.arange(n),
+            "stack": stack,
+            "x": xy[:, 0],
+            "y": xy[:, 1],
+            "field_x": xy[:, 0] + origins[stack, 1],
+            "field_y": xy[:, 1] + origins[stack, 0],
+        }
+    )
+
+
+def _particle_sizes(
+    rng: np.random.Generator,
+    n: int,
+    diameter: float,
+    diameter_sd: float,
+    fraction: float,
+    photons: float,
+) -> pd.DataFrame:
+    """``diameter_nm``, signal ``photons`` (photoelectrons per frame), ``defect`` and
+    ``defective`` of ``n`` random particles, a ``fraction`` of them defective (half dimers,
+    half twice as large)."""
+    diameters = np.clip(rng.normal(diameter, diameter_sd, n), 0.5 * diameter, None)
+    n_bad = int(round(fraction * n))
+    defect = np.full(n, "none", dtype=object)
+    bad = rng.choice(n, size=n_bad, replace=False)
+    defect[bad[: (n_bad + 1) // 2]] = "dimer"
+    defect[bad[(n_bad + 1) // 2 :]] = "large"
+    diameters = np.where(defect == "large", 2 * diameters, diameters)
+    signal = photons * (diameters / diameter) ** 3
+    signal = np.where(defect == "large", signal / 2.0, signal)  # surface-limited dye loading
+    return pd.DataFrame(
+        {
+            "diameter_nm": diameters,
+            "photons": signal,
+            "defect": pd.Categorical(defect, categories=DEFECT_KINDS),
+            "defective": defect != "none",
+        }
+    )
+
+
+def _heights(
+    place: pd.DataFrame,
+    diameters: np.ndarray,
+    diameter: float,
+    tilt: tuple[float, float],
+    optics: Optics,
+    aberrations: AberrationMap,
+) -> pd.DataFrame:
+    """Per particle (nm): the substrate under it, on a plane through the field centre rising
+    by ``tilt[0]`` nm per pixel along the azimuth ``tilt[1]`` (rad, from +x towards +y) and
+    touching the bottom of a particle of the mean ``diameter``; its centre; the defocus of its
+    best focus and the piezo position of it."""
+    rows, cols = aberrations.field_shape
+    slope, direction = tilt
+    field_x, field_y = place["field_x"].to_numpy(), place["field_y"].to_numpy()
+    z_surface = -diameter / 2 + slope * (
+        (field_x - (cols - 1) / 2) * math.cos(direction)
+        + (field_y - (rows - 1) / 2) * math.sin(direction)
+    )
+    z_centre = z_surface + diameters / 2
+    # Best focus of each particle (a dimer's lobes are in the same plane as a single particle).
+    focus = best_focus_defocus_nm(optics, aberrations, field_x, field_y, diameter_nm=diameters)
+    return pd.DataFrame(
+        {
+            "z_surface_nm": z_surface,
+            "z_nm": z_centre,
+            "focus_defocus_nm": focus,
+            "z_focus_nm": focus - z_centre,
+        }
+    )
+
+
+def _lobes(
+    xy: np.ndarray, diameters: np.ndarray, defect: np.ndarray, angle: np.ndarray, optics: Optics
+) -> pd.DataFrame:
+    """One emitter per particle (``particle, x, y, emitter``, pixels), two for a dimer: its
+    touching halves, along ``angle`` (rad)."""
+    lobes = []
+    for i in range(len(xy)):
+        if defect[i] == "dimer":
+            dx = 0.5 * diameters[i] / optics.pixel_size_nm * math.cos(angle[i])
+            dy = 0.5 * diameters[i] / optics.pixel_size_nm * math.sin(angle[i])
+            lobes += [(i, xy[i, 0] + dx, xy[i, 1] + dy), (i, xy[i, 0] - dx, xy[i, 1] - dy)]
+        else:
+            lobes.append((i, xy[i, 0], xy[i, 1]))
+    lobe_table = pd.DataFrame(lobes, columns=["particle", "x", "y"])
+    lobe_table["emitter"] = np.arange(len(lobe_table))
+    return lobe_table
+
+
+def _through_focus(
+    lobes: pd.DataFrame,
+    z: np.ndarray,
+    z_centre: np.ndarray,
+    signal: np.ndarray,
+    diameters: np.ndarray,
+    stack: np.ndarray,
+) -> pd.DataFrame:
+    """Every lobe in every plane: its frame, defocus (nm), photons, diameter and stack."""
+    n_z = z.size
+    emitters = lobes.loc[lobes.index.repeat(n_z)].reset_index(drop=True)
+    emitters["frame"] = np.tile(np.arange(n_z), len(lobes))
+    p = emitters["particle"].to_numpy()
+    emitters["defocus_nm"] = z_centre[p] + z[emitters["frame"].to_numpy()]
+    emitters["photons"] = signal[p]
+    emitters["diameter_nm"] = diameters[p]
+    emitters["stack"] = stack[p]
+    return emitters
+
+
+def _stack(
+    emitters: pd.DataFrame,
+    origin: np.ndarray,
+    *,
+    n_z: int,
+    frame_shape: tuple[int, int],
+    optics: Optics,
+    aberrations: AberrationMap,
+    background: float,
+    camera: Camera,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """The camera stack (ADU) of ``emitters`` in frames at field ``origin`` (row, column)."""
+    at = (int(origin[0]), int(origin[1]))
+    expected = render_expected(
+        emitters,
+        n_frames=n_z,
+        frame_shape=frame_shape,
+        origin=at,
+        optics=optics,
+        aberrations=aberrations,
+        background=background,
+    )
+    return expose(expected, camera, rng, origin=at)
 
 
 def _frame_values(name: str, value: Any, n_frames: int) -> np.ndarray:
@@ -528,41 +623,7 @@ def aperture_array(
     z = check_array("z_nm", np.atleast_1d(np.asarray(z_nm, dtype=float)), ndim=1)
     rng = np.random.default_rng(seed)
 
-    extent_nm = math.hypot(*shape) * pixel
-    n_side = int(extent_nm // pitch) + 3
-    idx = np.arange(n_side) - n_side // 2
-    rows_i, cols_j = (a.ravel() for a in np.meshgrid(idx, idx, indexing="ij"))
-    offset = rng.uniform(-0.5, 0.5, 2) * pitch
-    x_nm = cols_j * pitch + offset[0]
-    y_nm = rows_i * pitch + offset[1]
-    cos, sin = math.cos(rotation), math.sin(rotation)
-    fx0, fy0 = c0 + (shape[1] - 1) / 2, r0 + (shape[0] - 1) / 2  # array centre in field px
-    dx = (cos * x_nm - sin * y_nm) / pixel + fx0 - (fw - 1) / 2
-    dy = (sin * x_nm + cos * y_nm) / pixel + fy0 - (fh - 1) / 2
-    scale = 1.0 + kappa * (dx**2 + dy**2) / (fw / 2.0) ** 2
-    field_x = (fw - 1) / 2 + dx * scale
-    field_y = (fh - 1) / 2 + dy * scale
-    margin = 6.0
-    keep = (
-        (field_x - c0 >= margin)
-        & (field_x - c0 <= shape[1] - 1 - margin)
-        & (field_y - r0 >= margin)
-        & (field_y - r0 <= shape[0] - 1 - margin)
-    )
-    if not np.any(keep):
-        raise ValueError(f"No aperture of pitch {pitch} nm falls inside frames of shape {shape}.")
-    table = pd.DataFrame(
-        {
-            "row": rows_i[keep] - rows_i[keep].min(),
-            "column": cols_j[keep] - cols_j[keep].min(),
-            "x_nm": x_nm[keep],
-            "y_nm": y_nm[keep],
-            "x": field_x[keep] - c0,
-            "y": field_y[keep] - r0,
-            "field_x": field_x[keep],
-            "field_y": field_y[keep],
-        }
-    )
+    table = _aperture_lattice(rng, pitch, rotation, kappa, pixel, shape, (r0, c0), (fh, fw))
     table.insert(0, "aperture", np.arange(len(table)))
     spots = table.loc[table.index.repeat(z.size), ["x", "y"]].reset_index(drop=True)
     spots["frame"] = np.tile(np.arange(z.size), len(table))
@@ -594,4 +655,55 @@ def aperture_array(
         optics=optics,
         aberrations=aberrations,
         seed=seed,
+    )
+
+
+def _aperture_lattice(
+    rng: np.random.Generator,
+    pitch: float,
+    rotation: float,
+    kappa: float,
+    pixel: float,
+    shape: tuple[int, int],
+    origin: tuple[int, int],
+    field_shape: tuple[int, int],
+) -> pd.DataFrame:
+    """The apertures of a square lattice (``pitch`` nm, rotated by ``rotation`` rad, offset by
+    a random sub-pitch amount) that image inside frames of ``shape`` at field ``origin``,
+    with radial distortion ``kappa``: ``row, column, x_nm, y_nm, x, y, field_x, field_y``."""
+    (r0, c0), (fh, fw) = origin, field_shape
+    extent_nm = math.hypot(*shape) * pixel
+    n_side = int(extent_nm // pitch) + 3
+    idx = np.arange(n_side) - n_side // 2
+    rows_i, cols_j = (a.ravel() for a in np.meshgrid(idx, idx, indexing="ij"))
+    offset = rng.uniform(-0.5, 0.5, 2) * pitch
+    x_nm = cols_j * pitch + offset[0]
+    y_nm = rows_i * pitch + offset[1]
+    cos, sin = math.cos(rotation), math.sin(rotation)
+    fx0, fy0 = c0 + (shape[1] - 1) / 2, r0 + (shape[0] - 1) / 2  # array centre in field px
+    dx = (cos * x_nm - sin * y_nm) / pixel + fx0 - (fw - 1) / 2
+    dy = (sin * x_nm + cos * y_nm) / pixel + fy0 - (fh - 1) / 2
+    scale = 1.0 + kappa * (dx**2 + dy**2) / (fw / 2.0) ** 2
+    field_x = (fw - 1) / 2 + dx * scale
+    field_y = (fh - 1) / 2 + dy * scale
+    margin = 6.0
+    keep = (
+        (field_x - c0 >= margin)
+        & (field_x - c0 <= shape[1] - 1 - margin)
+        & (field_y - r0 >= margin)
+        & (field_y - r0 <= shape[0] - 1 - margin)
+    )
+    if not np.any(keep):
+        raise ValueError(f"No aperture of pitch {pitch} nm falls inside frames of shape {shape}.")
+    return pd.DataFrame(
+        {
+            "row": rows_i[keep] - rows_i[keep].min(),
+            "column": cols_j[keep] - cols_j[keep].min(),
+            "x_nm": x_nm[keep],
+            "y_nm": y_nm[keep],
+            "x": field_x[keep] - c0,
+            "y": field_y[keep] - r0,
+            "field_x": field_x[keep],
+            "field_y": field_y[keep],
+        }
     )

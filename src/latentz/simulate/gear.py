@@ -181,7 +181,43 @@ def gear_movie(
         seed=seed,
         **motion_options,
     )
+    truth, centre = _truth(gear, frame_shape, (r0, c0), piezo, optics, aberrations, diameter)
+    truth["photons"] = photons
+    truth["diameter_nm"] = diameter
+    truth["in_frame"] = _in_frame(truth, frame_shape, margin=4.0)
+    frames = _render(truth, frame_shape, (r0, c0), optics, aberrations, background, camera, seed)
+    return GearMovie(
+        frames=frames,
+        truth=truth,
+        motion=gear.motion,
+        gear=gear,
+        centre_px=centre,
+        origin=(r0, c0),
+        z_piezo_nm=piezo,
+        camera=camera,
+        optics=optics,
+        aberrations=aberrations,
+        background=background,
+        photons=photons,
+        particle_diameter_nm=diameter,
+        seed=seed,
+    )
+
+
+def _truth(
+    gear: GearTruth,
+    frame_shape: tuple[int, int],
+    origin: tuple[int, int],
+    piezo: float,
+    optics: Optics,
+    aberrations: AberrationMap,
+    diameter: float,
+) -> tuple[pd.DataFrame, tuple[float, float]]:
+    """The gear's particle positions in frame pixels (gear centre at the frame centre) and
+    field pixels, with their defocus and height above the local focal surface (nm); and the
+    frame centre (x, y) in pixels."""
     height, width = frame_shape
+    r0, c0 = origin
     centre = ((width - 1) / 2.0, (height - 1) / 2.0)
     truth = gear.positions[["frame", "particle", "x_nm", "y_nm", "z_nm"]].copy()
     truth = truth.reset_index(drop=True)
@@ -200,16 +236,33 @@ def gear_movie(
     )
     truth["focus_defocus_nm"] = focus(truth["field_x"], truth["field_y"])
     truth["z_from_focus_nm"] = truth["defocus_nm"] - truth["focus_defocus_nm"]
-    truth["photons"] = photons
-    truth["diameter_nm"] = diameter
-    margin = 4.0
-    truth["in_frame"] = (
+    return truth, centre
+
+
+def _in_frame(truth: pd.DataFrame, frame_shape: tuple[int, int], margin: float) -> pd.Series:
+    """Whether each particle lies at least ``margin`` pixels inside the frame."""
+    height, width = frame_shape
+    return (
         (truth["x"] >= margin)
         & (truth["x"] <= width - 1 - margin)
         & (truth["y"] >= margin)
         & (truth["y"] <= height - 1 - margin)
     )
 
+
+def _render(
+    truth: pd.DataFrame,
+    frame_shape: tuple[int, int],
+    origin: tuple[int, int],
+    optics: Optics,
+    aberrations: AberrationMap,
+    background: float,
+    camera: Camera,
+    seed: int,
+) -> np.ndarray:
+    """The camera movie (ADU) of the particles in ``truth``, rendered a bounded number of
+    pixels at a time."""
+    height, width = frame_shape
     rng = np.random.default_rng(seed)
     n_frames = int(truth["frame"].max()) + 1
     frames = np.empty((n_frames, height, width), dtype=np.uint16)
@@ -224,25 +277,10 @@ def gear_movie(
             part,
             n_frames=stop - start,
             frame_shape=frame_shape,
-            origin=(r0, c0),
+            origin=origin,
             optics=optics,
             aberrations=aberrations,
             background=background,
         )
-        frames[start:stop] = expose(expected, camera, rng, origin=(r0, c0))
-    return GearMovie(
-        frames=frames,
-        truth=truth,
-        motion=gear.motion,
-        gear=gear,
-        centre_px=centre,
-        origin=(r0, c0),
-        z_piezo_nm=piezo,
-        camera=camera,
-        optics=optics,
-        aberrations=aberrations,
-        background=background,
-        photons=photons,
-        particle_diameter_nm=diameter,
-        seed=seed,
-    )
+        frames[start:stop] = expose(expected, camera, rng, origin=origin)
+    return frames

@@ -147,6 +147,54 @@ def _axis_angles(rotvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return gamma, beta, alpha, defined
 
 
+def _poses(
+    rng: np.random.Generator,
+    n_frames: int,
+    steps_per_rev: int,
+    rot_play: float,
+    play: float,
+    tilt: float,
+    nutation: float,
+    rocking: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gear's pose in each frame: rotation matrices (n_frames, 3, 3), hub offsets (nm)
+    and tilt vectors (rad): a ratchet step with in-plane rotational play, the hub anywhere in
+    a disc of diameter ``play``, the static tilt plus the nutation's two states (alternating
+    with revolution parity) and random rocking."""
+    k = np.arange(n_frames)
+    theta = 2.0 * np.pi * k / steps_per_rev + rng.normal(0.0, rot_play, n_frames)
+    hub_r = 0.5 * play * np.sqrt(rng.uniform(0.0, 1.0, n_frames))
+    hub_phi = rng.uniform(0.0, 2.0 * np.pi, n_frames)
+    hub = np.stack([hub_r * np.cos(hub_phi), hub_r * np.sin(hub_phi), np.zeros(n_frames)], 1)
+
+    state = np.clip(3.0 * np.cos(0.5 * theta), -1.0, 1.0)
+    tau = tilt * _unit(STATIC_TILT_AXIS_RAD) + 0.5 * nutation * state[:, None] * _unit(
+        PLAY_AXIS_RAD
+    )
+    tau = tau + rng.normal(0.0, rocking, (n_frames, 2))
+    tilt_rot = Rotation.from_rotvec(np.column_stack([tau, np.zeros(n_frames)]))
+    spin = Rotation.from_rotvec(np.outer(theta, [0.0, 0.0, 1.0]))
+    return (tilt_rot * spin).as_matrix(), hub, tau
+
+
+def _motion_table(frames: np.ndarray, rot: np.ndarray, delta: np.ndarray) -> pd.DataFrame:
+    """One row per transition into ``frames``: γ, β, α (rad) of its rotation matrix and its
+    translation (nm) about the centre of rotation."""
+    gamma, beta, alpha, defined = _axis_angles(Rotation.from_matrix(rot).as_rotvec())
+    return pd.DataFrame(
+        {
+            "frame": frames,
+            "gamma": gamma,
+            "beta": beta,
+            "alpha": alpha,
+            "alpha_defined": defined,
+            "dx_nm": delta[:, 0],
+            "dy_nm": delta[:, 1],
+            "dz_nm": delta[:, 2],
+        }
+    )
+
+
 def gear_trajectory(
     n_cycles: int,
     *,
@@ -218,20 +266,8 @@ def gear_trajectory(
     body = _place_particles(rng, n_particles, radius)
     n_frames = n_cycles + 1
     k = np.arange(n_frames)
-    theta = 2.0 * np.pi * k / steps_per_rev + rng.normal(0.0, rot_play, n_frames)
-    hub_r = 0.5 * play * np.sqrt(rng.uniform(0.0, 1.0, n_frames))
-    hub_phi = rng.uniform(0.0, 2.0 * np.pi, n_frames)
-    hub = np.stack([hub_r * np.cos(hub_phi), hub_r * np.sin(hub_phi), np.zeros(n_frames)], 1)
-
-    state = np.clip(3.0 * np.cos(0.5 * theta), -1.0, 1.0)
-    tau = tilt * _unit(STATIC_TILT_AXIS_RAD) + 0.5 * nutation * state[:, None] * _unit(
-        PLAY_AXIS_RAD
-    )
-    tau = tau + rng.normal(0.0, rocking, (n_frames, 2))
-    tilt_rot = Rotation.from_rotvec(np.column_stack([tau, np.zeros(n_frames)]))
-    spin = Rotation.from_rotvec(np.outer(theta, [0.0, 0.0, 1.0]))
-    pose_r = (tilt_rot * spin).as_matrix()
-
+    pose_r, hub, tau = _poses(rng, n_frames, steps_per_rev, rot_play, play, tilt, nutation,
+                              rocking)  # fmt: skip
     pos = np.einsum("kab,jb->kja", pose_r, body) + hub[:, None, :]
     if flexure_period_cycles is not None:
         along = (pos[..., :2] - hub[:, None, :2]) @ _unit(COUPLING_RAD)
@@ -242,8 +278,6 @@ def gear_trajectory(
     rot = np.einsum("kab,kcb->kac", pose_r[1:], pose_r[:-1])
     raw_t = hub[1:] - np.einsum("kab,kb->ka", rot, hub[:-1])
     delta = raw_t + np.einsum("kab,b->ka", rot, centre) - centre
-    gamma, beta, alpha, defined = _axis_angles(Rotation.from_matrix(rot).as_rotvec())
-
     positions = pd.DataFrame(
         {
             "frame": np.repeat(k, n_particles),
@@ -253,18 +287,7 @@ def gear_trajectory(
             "z_nm": pos[..., 2].ravel(),
         }
     )
-    motion = pd.DataFrame(
-        {
-            "frame": k[1:],
-            "gamma": gamma,
-            "beta": beta,
-            "alpha": alpha,
-            "alpha_defined": defined,
-            "dx_nm": delta[:, 0],
-            "dy_nm": delta[:, 1],
-            "dz_nm": delta[:, 2],
-        }
-    )
+    motion = _motion_table(k[1:], rot, delta)
     for array in (rot, delta, pose_r, hub, body, centre, tau):
         array.setflags(write=False)
     return GearTruth(
