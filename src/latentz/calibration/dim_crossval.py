@@ -45,8 +45,6 @@ def dim_held_out(
     ``ratio`` = (b + readnoise²) / A) imaged like each kept particle at each plane, localized
     with its nearest other kept particle's refits and inverse model (module notes); NaN for
     culled particles and where the model does not cover it."""
-    from latentz.calibration.result import _interp_rows, _row_weights
-
     local, traces, shape = cal.local, cal.traces, cal.shape
     model = local.shapes[shape]
     n, n_z = model.values.shape
@@ -71,10 +69,11 @@ def dim_held_out(
     def own(name: str) -> np.ndarray:
         return traces[name][i, k]
 
-    at = _row_weights(local.z_nm, p, z)
-
     def neighbour(name: str) -> np.ndarray:
-        return _interp_rows(local.z_nm, traces[name], p, z, at)
+        """The nearest other particle's trace at each held-out plane's z (end values held)."""
+        values = [np.interp(local.z_nm[a], local.z_nm[b], traces[name][b])
+                  for a, b in zip(rows, rows[nearest[:, 1]], strict=True)]  # fmt: skip
+        return np.concatenate(values)
 
     if ratio is None:
         amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))
