@@ -56,27 +56,20 @@ def test_quick_demo_writes_report_and_recovers_truth(quick_demo):
     assert abs(pixel / 129.3 - 1) < 5e-4
 
 
-# Known miss, measured and reported (strict: it fails the suite once it passes), see
-# docs/validation.md ("Known limits"): in the quick demo (80 particles, 100 nm steps)
-# alpha, the precession of a tiny tilt, is off by 2.5x its cycles' sigma (beta 1.87x). The gear's
-# z errors per track (9.4 nm RMS) are a plane, 0.27 mrad off the truth's, the same with every
-# field model, that the reported z_err_nm (median 6.4 nm) does not hold: 1 sigma covers 43 %.
-# The full demo is within 1.24x for every degree of freedom.
-_MOTION_MISSES = {"alpha"}
+#: Known miss, measured and bounded, see docs/validation.md ("Known limits"): in the quick
+#: demo (80 particles, 100 nm steps) alpha, the precession of a tiny tilt, is off by 2.5x
+#: its cycles' sigma (beta 1.87x). The gear's z errors per track (9.4 nm RMS) are a plane,
+#: 0.27 mrad off the truth's, the same with every field model, that the reported z_err_nm
+#: (median 6.4 nm) does not hold: 1 sigma covers 43 %. The full demo is within 1.24x for every
+#: degree of freedom. Alpha may not get worse than 3x (the measured 2.5x and 20 % more).
+LIMITS = {"alpha": 3.0}
 
 
-@pytest.mark.parametrize(
-    "dof",
-    [
-        pytest.param(d, marks=pytest.mark.xfail(strict=True, reason="measured miss, see above"))
-        if d in _MOTION_MISSES
-        else d
-        for d in ("gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm")
-    ],
-)
+@pytest.mark.parametrize("dof", ["gamma", "beta", "alpha", "dx_nm", "dy_nm", "dz_nm"])
 def test_quick_demo_recovers_each_degree_of_freedom(quick_demo, dof):
-    """Within twice its Monte Carlo uncertainty, each cycle against its own (6 cycles: the RMS
-    of 6 unit normals exceeds 2 with probability ~0.05 %)."""
+    """Within twice its Monte Carlo uncertainty (alpha: :data:`LIMITS`), each cycle against its
+    own (6 cycles: the RMS of 6 unit normals exceeds 2 with probability ~0.05 %)."""
     within = pd.read_csv(quick_demo[0] / "run" / "motion_vs_truth.csv").set_index("dof")
     assert len(within) == 6
-    assert within.loc[dof, "rms_error_over_cycle_sigma"] < 2, within
+    print(f"{dof}: RMS error / cycle sigma {within.loc[dof, 'rms_error_over_cycle_sigma']:.2f}")
+    assert within.loc[dof, "rms_error_over_cycle_sigma"] < LIMITS.get(dof, 2.0), within

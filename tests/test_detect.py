@@ -5,10 +5,12 @@ import pandas as pd
 import pytest
 from movie_truth import emitter_movie, match
 
+from latentz.camera import Camera
 from latentz.detect.api import (
     DEFAULT_THRESHOLD,
     band_noise,
     band_pass,
+    cut_rois,
     default_threshold,
     detect,
     detect_arrays,
@@ -117,6 +119,34 @@ def test_kernels_match_their_numpy_twin():
         order = np.lexsort((cols, rows))
         mine_order = np.lexsort((found.col[mine], found.row[mine]))
         np.testing.assert_allclose(found.snr[mine][mine_order], snr[order], rtol=1e-4)
+
+
+def test_kernels_read_adu_frames_as_the_twin_reads_their_photoelectrons():
+    # uint16 ADU through a camera with a flatfield, converted where the kernels read each
+    # pixel; 530 x 517 px frames: a strided noise sample (every 2nd pixel), partial blocks and
+    # several row strips per frame
+    rng = np.random.default_rng(12)
+    points = list(zip(rng.uniform(3, 514, 40), rng.uniform(3, 527, 40), strict=True))
+    photons = np.stack([_spot_frame(points, shape=(530, 517), seed=s) for s in range(3)])
+    flat = rng.uniform(0.8, 1.2, photons.shape[1:])
+    cam = Camera(offset=100.0, gain=0.5, flatfield=flat)
+    adu = np.round(photons * flat / cam.gain + cam.offset).astype(np.uint16)
+    found = detect_arrays(adu, roi_size=7, camera=cam)
+    for t in range(len(adu)):
+        rows, cols, snr = find_peaks(cam.to_photons(adu[t]))
+        mine = found.frame == t
+        # float32 kernels against float64 NumPy, as in the twin test above
+        assert sorted(zip(found.row[mine], found.col[mine], strict=True)) == sorted(
+            zip(rows, cols, strict=True)
+        )
+        order = np.lexsort((cols, rows))
+        mine_order = np.lexsort((found.col[mine], found.row[mine]))
+        np.testing.assert_allclose(found.snr[mine][mine_order], snr[order], rtol=1e-4)
+    # the ROIs are the photoelectrons at their own pixels (float64, the fits' input)
+    expected = cut_rois(cam.to_photons(adu), found.frame, found.row0, found.col0, 7)
+    np.testing.assert_allclose(found.rois, expected, rtol=1e-12)
+    np.testing.assert_allclose(band_noise(adu, camera=cam), band_noise(cam.to_photons(adu)),
+                               rtol=1e-4)  # fmt: skip
 
 
 def test_default_threshold_keeps_false_maxima_per_frame_constant():

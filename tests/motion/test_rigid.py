@@ -43,12 +43,17 @@ def _series(rotations, translations, seed=0, n=28):
     return np.array(p)
 
 
-def _truth(rotations, translations, positions):
-    """γ, β, α and Δ about the centre of rotation (mean of all positions)."""
+def _truth(rotvecs, translations, positions):
+    """γ, β, α of the rotation vectors that made the motion (angle |v|; axis v/|v| at nutation β
+    from z, precession α about z) and Δ about the centre of rotation (mean of all positions)."""
+    rotations = Rotation.from_rotvec(rotvecs).as_matrix()
     centre = positions.reshape(-1, 3).mean(0)
     delta = translations + np.einsum("nij,j->ni", rotations, centre) - centre
-    gamma, beta, alpha, defined = decompose_rotation(rotations)
-    return gamma, beta, alpha, defined, delta
+    gamma = np.linalg.norm(rotvecs, axis=1)
+    horizontal = np.hypot(rotvecs[:, 0], rotvecs[:, 1])
+    beta = np.arctan2(horizontal, rotvecs[:, 2])
+    alpha = np.arctan2(rotvecs[:, 1], rotvecs[:, 0])
+    return gamma, beta, alpha, horizontal > 0, delta
 
 
 def test_numba_kernel_matches_numpy_svd_twin():
@@ -68,12 +73,12 @@ def test_numba_kernel_matches_numpy_svd_twin():
 @pytest.mark.parametrize("gamma_scale", [1.0, 1e-5])
 def test_random_motions_are_recovered_exactly(gamma_scale):
     rng = np.random.default_rng(7)
-    rotvec = Rotation.random(40, random_state=3).as_rotvec()
-    rotations = Rotation.from_rotvec(rotvec * gamma_scale).as_matrix()
+    rotvec = Rotation.random(40, random_state=3).as_rotvec() * gamma_scale
+    rotations = Rotation.from_rotvec(rotvec).as_matrix()
     translations = rng.normal(scale=1e3, size=(40, 3))
     pos = _series(rotations, translations)
     motion = rigid_motion(_tracks(pos))
-    gamma, beta, alpha, defined, delta = _truth(rotations, translations, pos)
+    gamma, beta, alpha, defined, delta = _truth(rotvec, translations, pos)
     assert defined.all() and motion.alpha_defined.all()
     np.testing.assert_allclose(motion.gamma, gamma, rtol=1e-9)
     np.testing.assert_allclose(motion.beta, beta, rtol=1e-9)
@@ -96,8 +101,14 @@ def test_vertical_axis_flags_alpha_as_ill_defined():
 
 
 def test_decomposition_matches_eqs_11_to_14_and_inverts():
-    rot = Rotation.random(100, random_state=5).as_matrix()
+    rotvec = Rotation.random(100, random_state=5).as_rotvec()
+    rot = Rotation.from_rotvec(rotvec).as_matrix()
     gamma, beta, alpha, _ = decompose_rotation(rot)
+    # the angles of the rotation vectors that made the matrices (scipy, not latentz)
+    true_gamma, true_beta, true_alpha, _, _ = _truth(rotvec, np.zeros((100, 3)), np.zeros((1, 3)))
+    np.testing.assert_allclose(gamma, true_gamma, rtol=1e-9)
+    np.testing.assert_allclose(beta, true_beta, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(alpha, true_alpha, rtol=1e-9)
     u = np.stack(
         [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]], 1
     )

@@ -188,3 +188,22 @@ def test_one_bead_calibrates_with_defaults_and_one_line_on_nearest(tmp_path):
     assert len(set(nearest)) == 1 and nearest[0].startswith("latentz: warning:")
     assert "camera: offset 400 ADU (given)" in result.stdout
     assert "shape='auto'" in result.stdout
+
+
+def test_a_calibration_roi_larger_than_the_movie_names_both_sizes_and_the_fix(
+    tmp_path, small_microscope, small_calibration
+):
+    cal = tmp_path / "cal.h5"
+    small_calibration.save(cal)
+    side = small_calibration.roi_size - 4  # odd, smaller than the calibration's ROI
+    movie = tmp_path / "small.tif"
+    tifffile.imwrite(movie, small_microscope.gear.frames[:2, :side, :side])
+    out = tmp_path / "locs.parquet"
+    one_error_line(
+        run("localize", movie, "--calibration", cal, "--out", out),
+        f"calibration's {small_calibration.roi_size} px ROI",
+        f"{side} x {side} px images",
+        f"--roi-size {side}",
+        f"localize with roi_size={side}",
+    )
+    nothing_in(tmp_path, "cal.h5", "small.tif")

@@ -10,11 +10,11 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, smlm_beads
+from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, score_z, smlm_beads
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
-from latentz.localization.quality import assess, good_rows, summary
+from latentz.localization.quality import UNRESOLVED_PX, assess, good_rows, summary
 
 
 def _table(points, frame=0, error=0.05, converged=True):
@@ -35,23 +35,23 @@ def _table(points, frame=0, error=0.05, converged=True):
 def test_detections_on_one_emitter_are_merged_into_the_most_precise():
     # emitters at (20, 20) and (60, 20); the first detected three times, fits 0.1-0.4 px apart
     spots = _table([(20, 20), (20.3, 20.1), (60, 20), (19.9, 20.2)], error=[0.2, 0.05, 0.1, 0.3])
-    out = assess(spots, roi_size=11)
+    out = assess(spots)
     assert out["duplicate"].tolist() == [True, False, False, True]
     assert out["good"].tolist() == [False, True, True, False]
     # the same points in another frame are another emitter
     both = pd.concat([spots, _table([(20, 20)], frame=1)], ignore_index=True)
-    assert not assess(both, roi_size=11)["duplicate"].iloc[-1]
+    assert not assess(both)["duplicate"].iloc[-1]
 
 
-def test_emitters_inside_each_others_roi_are_unresolved():
-    # 4 px apart: inside each other's 11 px ROI (half-width 5.5); 7 px apart: outside
-    out = assess(_table([(20, 20), (24, 20), (40, 40), (47, 40)]), roi_size=11)
+def test_emitters_closer_than_the_unresolved_distance_are_unresolved():
+    near, far = UNRESOLVED_PX - 0.5, UNRESOLVED_PX + 0.5  # in x; the distance is max(|dx|, |dy|)
+    out = assess(_table([(20, 20), (20 + near, 21), (40, 40), (40 + far, 41)]))
     assert out["unresolved"].tolist() == [True, True, False, False]
     assert out["good"].tolist() == [False, False, True, True]
 
 
 def test_unconverged_spots_are_not_good_and_not_anyones_neighbour():
-    out = assess(_table([(20, 20), (23, 20)], converged=[True, False]), roi_size=11)
+    out = assess(_table([(20, 20), (23, 20)], converged=[True, False]))
     assert out["good"].tolist() == [True, False] and not out["unresolved"].any()
     kept, line = good_rows(out)
     assert len(kept) == 1 and "dropped 1" in line and "not converged 1" in line
@@ -67,11 +67,13 @@ def test_own_calibration_fits_the_even_planes():
     checked = locs[np.isfinite(locs["consistency_chi2"]) & ~locs["duplicate"]]
     # χ² at its 99.9 % point: on ~100 spots a few flags at most are chance
     assert checked["inconsistent"].mean() <= 0.05
-    # good spots lie where the calibration measures z well, and there z is right
+    # good spots lie where the calibration measures z well, and there z is right: against the
+    # piezo z of these planes (never seen by the calibration), less one offset (latentz's z = 0
+    # is the bead's focus), within 2x the measured plane-to-plane precision (3.6 / 3.3 nm)
     good = locs[locs["good"]]
-    true_z = z[0::2][good["frame"].to_numpy()] - cal.particles["z_f"].iloc[0]
     assert len(good) >= 30
-    assert np.sqrt(np.mean((good["z_nm"] - true_z) ** 2)) <= 10.0
+    score = score_z(good["z_nm"], z[0::2][good["frame"].to_numpy()])
+    assert score["rms"] <= 2 * score["jitter"], score
 
 
 @pytest.fixture(scope="module")

@@ -117,17 +117,27 @@ def test_every_resolved_overlap_is_flagged(dense):
     assert n_pairs > 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known limitation: two spots closer than ~2.8 sigma merge into one band-passed peak, "
-    "whose single detection is not flagged close_pair (its fit is wider instead)",
-)
-def test_unresolved_overlaps_are_flagged(dense):
+def test_unresolved_overlaps_are_one_emitter_at_the_pairs_centre(dense):
+    """Known limitation, bounded: two spots closer than ~2.8 sigma merge into one band-passed
+    peak, whose single detection is not flagged close_pair (without a calibration nothing says
+    how wide one emitter is). How wrong it may be: it is one emitter of both spots' photons at
+    their midpoint, not a position pulled anywhere else. Pairs with no third spot inside the
+    ROI; the midpoint within 0.05 px (Cramér–Rao of the merged fit ~0.006 px, measured at most
+    0.021 px), the photons 2.0x one spot's within 5 % (measured 1.99-2.04x)."""
     frames, truth, locs, _ = dense
-    found = detect(frames, roi_size=ROI)
+    one_spot = 2 * np.pi * SIGMA**2 * AMPLITUDE
+    n_merged = 0
     for t in range(N_FRAMES):
-        frame = found[found["frame"] == t]
-        distance, nearest = cKDTree(frame[["col", "row"]].to_numpy(float)).query(truth[t])
-        pairs = cKDTree(truth[t]).query_pairs(2.5, p=np.inf, output_type="ndarray")
-        both = (distance[pairs[:, 0]] <= 2.5) & (nearest[pairs[:, 0]] == nearest[pairs[:, 1]])
-        assert frame["close_pair"].to_numpy()[nearest[pairs[both, 0]]].all()
+        frame = locs[locs["frame"] == t].reset_index(drop=True)
+        distance, nearest = cKDTree(frame[["x", "y"]].to_numpy(float)).query(truth[t])
+        spots = cKDTree(truth[t])
+        for a, b in spots.query_pairs(2.5, p=np.inf, output_type="ndarray"):
+            midpoint = (truth[t][a] + truth[t][b]) / 2
+            alone = len(spots.query_ball_point(midpoint, ROI, p=np.inf)) == 2
+            if not (alone and nearest[a] == nearest[b] and distance[a] <= 2.5):
+                continue
+            fit = frame.loc[nearest[a]]
+            assert np.hypot(fit["x"] - midpoint[0], fit["y"] - midpoint[1]) <= 0.05, fit
+            assert fit["photons"] / one_spot == pytest.approx(2.0, rel=0.05), fit
+            n_merged += 1
+    assert n_merged >= 10  # the case this test is about occurs in this sample (13 here)

@@ -619,7 +619,8 @@ class Calibration:
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         shape = self.shape
         cols = {c: spots[c].to_numpy(dtype=np.float64) for c in SPOT_COLUMNS}
-        located = np.isfinite(cols["x"]) & np.isfinite(cols["y"])
+        # a spot with any non-finite fit value is a broken fit: never in range
+        located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)

@@ -71,7 +71,7 @@ def localize_movies(
     from latentz.calibration import Calibration
     from latentz.cli.chunked import run_chunked
     from latentz.cli.options import camera_from_options
-    from latentz.localization import check_camera_offset
+    from latentz.localization import check_camera_offset, check_roi_fits
     from latentz.localization.quality import check_calibration_fits
 
     if fmt is not None:
@@ -87,6 +87,7 @@ def localize_movies(
     if roi_size is None:  # the fitted widths, hence the shape value, depend on the ROI
         roi_size = cal.roi_size
     frames, bounds = _read_movies(movies)
+    check_roi_fits(roi_size, frames.shape[1:], cal)
     options = {
         "roi_size": roi_size,
         "threshold": threshold,
@@ -183,7 +184,7 @@ def _localize_chunk(
             device=device,
         )
         spots["frame"] = spots["frame"] + start
-        located = assess(cal.apply(spots), cal, roi_size=roi_size)
+        located = assess(cal.apply(spots), cal)
     movie = [names[i] for i in bounds.searchsorted(located["frame"], side="right")]
     located.insert(1, "movie", movie)
     return located

@@ -29,14 +29,13 @@ from latentz._shared.validate import check_int, check_positive
 from latentz.detect import _kernels as _detect_kernels
 from latentz.detect.api import (
     _MAD_TO_SIGMA,
-    _MERGE_DIP,
-    _MERGE_RADIUS_SIGMAS,
     Detections,
     check_frames,
     check_noise,
     default_threshold,
     edge_noise_gain,
     filter_plan,
+    merge_maxima,
     noise_stride,
     roi_corners,
 )
@@ -237,13 +236,15 @@ def detect_arrays_cuda(
         peaks = _find_peaks(filtered, threshold * noise, sigma, reach)
         t, rows, cols = np.ascontiguousarray(peaks[:, :3].T, dtype=np.int64)
         # the maxima of one spot merged and close pairs flagged on the host, as on the CPU
-        keep = np.empty(len(t), np.bool_)
-        close = np.empty(len(t), np.bool_)
-        _detect_kernels.merge_and_pair(
-            filtered.copy_to_host().astype(np.float32), np.searchsorted(t, np.arange(m + 1)),
-            rows, cols, peaks[:, 3].copy(), noise, _MERGE_RADIUS_SIGMAS * sigma, _MERGE_DIP,
-            roi_size // 2, keep, close,
-        )  # fmt: skip
+        band = filtered.copy_to_host().astype(np.float32)
+
+        def valleys(first, second, band=band, t=t, rows=rows, cols=cols):
+            out = np.empty(len(first))
+            _detect_kernels.valleys_in_band(band, t, rows, cols, first, second, out)
+            return out
+
+        values = peaks[:, 3].copy()
+        keep, close = merge_maxima(t, rows, cols, values, noise, sigma, roi_size // 2, valleys)
         t, rows, cols, close, values = t[keep], rows[keep], cols[keep], close[keep], peaks[keep, 3]
         snr = values / noise[t]
         row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))

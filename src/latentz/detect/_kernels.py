@@ -1,15 +1,31 @@
-"""numba kernels of detection: band-pass, noise level, local maxima and pair flags, per chunk.
+"""numba kernels of detection: camera transform, band-pass, noise, local maxima, merging.
 
 The NumPy reference twins are :func:`latentz.detect.band_pass`, :func:`latentz.detect.noise_level`
 and :func:`latentz.detect.find_peaks`; the filter is defined once, by
-:func:`latentz.detect.filter_plan`. Work is split into (frame, strip of rows) tasks run in
-parallel (``numba.prange``), so a chunk of one frame still uses every core. Everything is float32:
-the band-passed frame only decides where maxima are.
+:func:`latentz.detect.filter_plan`. Frames come in as they are stored (uint16 ADU, or float
+photoelectrons) and each pixel is converted to photoelectrons, ``(value - offset) * gain`` or
+``(value - offset) * scale[i, j]`` with ``scale = gain / flatfield``, where it is read: no
+photoelectron copy of a chunk is made. Everything is float32: the band-passed frame only decides
+where maxima are.
 
-Per task, the small Gaussian runs in one pass: each input row is filtered horizontally into a ring
-of ``2 r + 1`` rows, and each output row is filtered vertically from that ring, minus the wide
-background, which is blurred on a frame shrunk by block means and read back by bilinear
-interpolation.
+Detection of a chunk takes three passes over it, each in parallel (``numba.prange``) over
+(frame, strip of rows) tasks, so that a chunk of one frame still uses every core:
+
+1. `block_means`: the frame shrunk by block means, blurred (`blur`) into the wide background;
+2. `noise_samples`: the band-passed frame on the strided sample of
+   :func:`latentz.detect.noise_level` only, and `noise_levels` its robust spread;
+3. `detect_strips`: one streaming pass per strip. Each input row is converted and filtered
+   horizontally into a ring of ``2 r + 1`` rows; each band-passed row (vertical filter of that ring
+   minus the bilinearly read background) goes into a second ring of ``2 d + 1`` rows, ``d`` the
+   maxima's radius; each row whose ``d`` rows below are ready is tested against the threshold
+   (a count first, which vectorises: most rows hold nothing) and its pixels above it against
+   their neighbours. Memory is a few rows per task; the band-passed frame is never stored.
+
+The maxima of one wide spot are merged afterwards, on one thread (a few dozen per frame: waking
+the other threads would cost more than the work): `count_higher` and `list_higher` pair each
+maximum with the higher ones near it, `valleys_in_frames` finds the lowest band-passed value on
+the line between them (recomputed at those few pixels), and `merge_and_pair` drops ripples and
+flags close pairs.
 """
 
 from __future__ import annotations
@@ -27,10 +43,44 @@ def _clip(v, n):
     return 0 if v < 0 else (n - 1 if v >= n else v)
 
 
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _photon_row(src, offset, gain, scale, i, dst, start):
+    """``dst[start : start + w]``: row ``src`` (frame row ``i``) in photoelectrons, float32.
+    ``scale`` (H, W) is ``gain / flatfield``, or empty for a uniform camera."""
+    w = src.shape[0]
+    if scale.shape[0] == 0:
+        for j in range(w):
+            dst[start + j] = (np.float32(src[j]) - offset) * gain
+    else:
+        line = scale[i]
+        for j in range(w):
+            dst[start + j] = (np.float32(src[j]) - offset) * line[j]
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _add_photon_row(src, offset, gain, scale, i, acc):
+    """``acc += `` row ``src`` (frame row ``i``) in photoelectrons, as `_photon_row`."""
+    w = src.shape[0]
+    if scale.shape[0] == 0:
+        for j in range(w):
+            acc[j] += (np.float32(src[j]) - offset) * gain
+    else:
+        line = scale[i]
+        for j in range(w):
+            acc[j] += (np.float32(src[j]) - offset) * line[j]
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _photon_at(frame, offset, gain, scale, i, j):
+    if scale.shape[0] == 0:
+        return (np.float32(frame[i, j]) - offset) * gain
+    return (np.float32(frame[i, j]) - offset) * scale[i, j]
+
+
 @numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def block_means(frames, factor, out):
-    """``out[t, R, C]``: mean of ``frames[t]`` over block ``R, C`` of ``factor`` x ``factor``
-    pixels (partial blocks at the far edges average the pixels they hold)."""
+def block_means(frames, offset, gain, scale, factor, out):
+    """``out[t, R, C]``: mean photoelectrons of ``frames[t]`` over block ``R, C`` of ``factor`` x
+    ``factor`` pixels (partial blocks at the far edges average the pixels they hold)."""
     n, h, w = frames.shape
     hs, ws = out.shape[1], out.shape[2]
     for task in numba.prange(n * hs):
@@ -39,9 +89,7 @@ def block_means(frames, factor, out):
         acc = np.zeros(w, dtype=np.float32)
         r1 = min(big * factor + factor, h)
         for i in range(big * factor, r1):
-            line = frames[t, i]
-            for j in range(w):
-                acc[j] += line[j]
+            _add_photon_row(frames[t, i], offset, gain, scale, i, acc)
         rows = r1 - big * factor
         for c in range(ws):
             c1 = min(c * factor + factor, w)
@@ -52,19 +100,10 @@ def block_means(frames, factor, out):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _pad_row(src, r, pad):
-    """``pad[r : r + w] = src``, with the edge values repeated ``r`` times on each side."""
-    w = src.shape[0]
-    for j in range(w):
-        pad[r + j] = src[j]
-    for j in range(r):
-        pad[j] = src[0]
-        pad[r + w + j] = src[w - 1]
-
-
-@numba.njit(cache=True, fastmath=_FASTMATH)
 def _row_filter(pad, weights, dst):
-    """Horizontal filter of a row padded by `_pad_row` (nearest-edge mode) into ``dst``."""
+    """Horizontal filter of a row padded by ``r`` edge values on each side into ``dst``, one
+    pass per tap (pairing the symmetric taps, ``pad[j + 2 r - k]``, stops LLVM vectorising: 6x
+    slower)."""
     w = dst.shape[0]
     for j in range(w):
         dst[j] = 0.0
@@ -72,6 +111,13 @@ def _row_filter(pad, weights, dst):
         wk = weights[k]
         for j in range(w):
             dst[j] += wk * pad[j + k]
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _pad_edges(pad, r, w):
+    for j in range(r):
+        pad[j] = pad[r]
+        pad[r + w + j] = pad[r + w - 1]
 
 
 @numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
@@ -83,7 +129,9 @@ def blur(images, weights, out):
         tmp = np.empty((h, w), dtype=np.float32)
         pad = np.empty(w + 2 * r, dtype=np.float32)
         for i in range(h):
-            _pad_row(images[t, i], r, pad)
+            for j in range(w):
+                pad[r + j] = images[t, i, j]
+            _pad_edges(pad, r, w)
             _row_filter(pad, weights, tmp[i])
         for i in range(h):
             line = out[t, i]
@@ -109,16 +157,114 @@ def _interp_axis(n, factor, n_small, index0, index1, frac):
         frac[i] = pos - i0
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def band_pass_strips(frames, background, factor, weights, n_strips, dog):
-    """``dog[t] = G_sigma * frames[t] - background`` (float32), in (frame, strip) tasks.
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _upsample_row(small, index0, index1, frac, out):
+    """``out``: a row of block means read bilinearly at each pixel (`_interp_axis`)."""
+    for j in range(out.shape[0]):
+        a = small[index0[j]]
+        out[j] = a + frac[j] * (small[index1[j]] - a)
 
-    ``background`` (n, hs, ws) is the blurred block-mean image, read by bilinear interpolation.
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _background_at(background, factor, i, j):
+    """The wide background (one frame's blurred block means) at pixel ``(i, j)``, bilinearly."""
+    hs, ws = background.shape
+    pr = min(max((i + 0.5) / factor - 0.5, 0.0), hs - 1.0)
+    pc = min(max((j + 0.5) / factor - 0.5, 0.0), ws - 1.0)
+    r0, c0 = int(math.floor(pr)), int(math.floor(pc))
+    r1, c1 = min(r0 + 1, hs - 1), min(c0 + 1, ws - 1)
+    fy, fx = pr - r0, pc - c0
+    top = background[r0, c0] + fx * (background[r0, c1] - background[r0, c0])
+    bottom = background[r1, c0] + fx * (background[r1, c1] - background[r1, c0])
+    return top + fy * (bottom - top)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def noise_samples(frames, offset, gain, scale, background, factor, weights, stride, out):
+    """``out[t, a, b]``: the band-passed frame ``t`` at pixel ``(a stride, b stride)``, computed
+    there only (vertical filter of the row's neighbourhood, then horizontal at the samples)."""
+    n, h, w = frames.shape
+    nh, nw = out.shape[1], out.shape[2]
+    r = (len(weights) - 1) // 2
+    for task in numba.prange(n * nh):
+        t = task // nh
+        a = task % nh
+        i = a * stride
+        acc = np.zeros(w, dtype=np.float32)
+        line = np.empty(w, dtype=np.float32)
+        for k in range(2 * r + 1):
+            row = _clip(i + k - r, h)
+            _photon_row(frames[t, row], offset, gain, scale, row, line, 0)
+            wk = weights[k]
+            for j in range(w):
+                acc[j] += wk * line[j]
+        for b in range(nw):
+            j = b * stride
+            v = np.float32(0.0)
+            for k in range(2 * r + 1):
+                v += weights[k] * acc[_clip(j + k - r, w)]
+            out[t, a, b] = v - _background_at(background[t], factor, i, j)
+
+
+@numba.njit(parallel=True, cache=True)
+def noise_levels(samples, mad_to_sigma, out):
+    """``out[t]``: 1.4826 x median absolute deviation of ``samples[t]`` (any shape)."""
+    for t in numba.prange(samples.shape[0]):
+        values = samples[t].ravel().astype(np.float64)
+        centre = np.median(values)
+        out[t] = mad_to_sigma * np.median(np.abs(values - centre))
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _band_row(ring, weights, i, r, top, bottom, fy, out):
+    """``out``: band-passed row ``i`` from the ring of horizontally filtered rows, minus the
+    background row interpolated between ``top`` and ``bottom``."""
+    w = out.shape[0]
+    ring_n = ring.shape[0]
+    centre = ring[i % ring_n]
+    wc = weights[r]
+    for j in range(w):
+        out[j] = wc * centre[j] - (top[j] + fy * (bottom[j] - top[j]))
+    for k in range(r):  # symmetric weights: rows i - r + k and i + r - k share one multiply
+        wk = weights[k]
+        above = ring[(i - r + k + ring_n) % ring_n]
+        below = ring[(i + r - k) % ring_n]
+        for j in range(w):
+            out[j] += wk * (above[j] + below[j])
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _is_peak(band, i, j, v, radius, h):
+    """Whether no pixel within ``radius`` (Chebyshev) of ``(i, j)`` exceeds ``v``; ``band``
+    holds band-passed rows ``k`` at ``band[k % len(band)]``."""
+    w = band.shape[1]
+    n = band.shape[0]
+    for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
+        line = band[ii % n]
+        for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
+            if line[jj] > v:
+                return False
+    return True
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def detect_strips(
+    frames, offset, gain, scale, background, factor, weights, limits, gain_rows, gain_cols,
+    radius, n_strips, rows, cols, values, counts,
+):  # fmt: skip
+    """Local maxima of the band-passed frames in one streaming pass per (frame, strip) task.
+
+    A maximum is a pixel above ``limits[t] * gain_rows[i] * gain_cols[j]`` (the noise grows at
+    the edges, `latentz.detect.edge_noise_gain`) that is the largest within ``radius`` px
+    (Chebyshev; ties all kept). Task ``k`` writes its first ``rows.shape[1]`` maxima to row ``k``
+    of ``rows, cols, values`` and its full count to ``counts[k]``.
     """
     n, h, w = frames.shape
     hs, ws = background.shape[1], background.shape[2]
     r = (len(weights) - 1) // 2
     ring_n = 2 * r + 1
+    band_n = 2 * radius + 1
+    cap = rows.shape[1]
     for task in numba.prange(n * n_strips):
         t = task // n_strips
         s = task % n_strips
@@ -129,86 +275,49 @@ def band_pass_strips(frames, background, factor, weights, n_strips, dog):
         colf = np.empty(w, dtype=np.float32)
         _interp_axis(w, factor, ws, col0, col1, colf)
         ring = np.empty((ring_n, w), dtype=np.float32)
+        band = np.empty((band_n, w), dtype=np.float32)
         pad = np.empty(w + 2 * r, dtype=np.float32)
-        top = np.empty(w, dtype=np.float32)
-        bottom = np.empty(w, dtype=np.float32)
-        for v in range(a - r, a + r):
-            _pad_row(frames[t, _clip(v, h)], r, pad)
+        upsampled = np.empty((2, w), dtype=np.float32)
+        first = max(a - radius, 0)
+        for v in range(first - r, first + r):  # the ring's rows above the first band row
+            row = _clip(v, h)
+            _photon_row(frames[t, row], offset, gain, scale, row, pad, r)
+            _pad_edges(pad, r, w)
             _row_filter(pad, weights, ring[(v + ring_n) % ring_n])
-        last = -1
-        for i in range(a, b):
-            v = i + r
-            _pad_row(frames[t, _clip(v, h)], r, pad)
-            _row_filter(pad, weights, ring[v % ring_n])
-            pos = min(max((i + 0.5) / factor - 0.5, 0.0), hs - 1.0)
-            r0 = int(math.floor(pos))
-            fy = pos - r0
-            if r0 != last:  # background rows, upsampled along the row once per block row
-                b0 = background[t, r0]
-                b1 = background[t, min(r0 + 1, hs - 1)]
-                for j in range(w):
-                    fx = colf[j]
-                    top[j] = b0[col0[j]] + fx * (b0[col1[j]] - b0[col0[j]])
-                    bottom[j] = b1[col0[j]] + fx * (b1[col1[j]] - b1[col0[j]])
-                last = r0
-            out = dog[t, i]
-            for j in range(w):
-                out[j] = -(top[j] + fy * (bottom[j] - top[j]))
-            for k in range(ring_n):
-                wk = weights[k]
-                line = ring[(i - r + k + ring_n) % ring_n]
-                for j in range(w):
-                    out[j] += wk * line[j]
-
-
-@numba.njit(parallel=True, cache=True)
-def noise_levels(dog, stride, mad_to_sigma, out):
-    """``out[t]``: 1.4826 x median absolute deviation of ``dog[t, ::stride, ::stride]``."""
-    n, h, w = dog.shape
-    nh = (h + stride - 1) // stride
-    nw = (w + stride - 1) // stride
-    for t in numba.prange(n):
-        values = np.empty(nh * nw)
-        k = 0
-        for i in range(0, h, stride):
-            for j in range(0, w, stride):
-                values[k] = dog[t, i, j]
-                k += 1
-        centre = np.median(values)
-        for m in range(nh * nw):
-            values[m] = abs(values[m] - centre)
-        out[t] = mad_to_sigma * np.median(values)
-
-
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def local_maxima(dog, limits, gain_rows, gain_cols, radius, n_strips, rows, cols, values, counts):
-    """Pixels above ``limits[t] * gain_rows[i] * gain_cols[j]`` (the noise grows at the edges,
-    `latentz.detect.edge_noise_gain`) that are the largest within ``radius`` px (Chebyshev; ties
-    all kept), per (frame, strip) task. Task ``k`` writes its first ``rows.shape[1]`` maxima to row
-    ``k`` of ``rows, cols, values`` and its full count to ``counts[k]``."""
-    n, h, w = dog.shape
-    cap = rows.shape[1]
-    for task in numba.prange(n * n_strips):
-        t = task // n_strips
-        s = task % n_strips
+        ready = first  # next band-passed row to compute
+        last = -2  # no block row read yet
         limit = limits[t]
         found = 0
-        for i in range(s * h // n_strips, (s + 1) * h // n_strips):
-            line = dog[t, i]
+        for i in range(a, b):
+            while ready <= min(i + radius, h - 1):
+                row = _clip(ready + r, h)
+                _photon_row(frames[t, row], offset, gain, scale, row, pad, r)
+                _pad_edges(pad, r, w)
+                _row_filter(pad, weights, ring[(ready + r) % ring_n])
+                pos = min(max((ready + 0.5) / factor - 0.5, 0.0), hs - 1.0)
+                r0 = int(math.floor(pos))
+                if r0 != last:  # background rows, upsampled along the row once per block row;
+                    # block row r0 + 1 is the next block row's first: kept in slot (r0 + 1) % 2
+                    if r0 != last + 1:
+                        _upsample_row(background[t, r0], col0, col1, colf, upsampled[r0 % 2])
+                    below = background[t, min(r0 + 1, hs - 1)]
+                    _upsample_row(below, col0, col1, colf, upsampled[(r0 + 1) % 2])
+                    last = r0
+                _band_row(
+                    ring, weights, ready, r, upsampled[r0 % 2], upsampled[(r0 + 1) % 2], pos - r0,
+                    band[ready % band_n],
+                )  # fmt: skip
+                ready += 1
+            line = band[i % band_n]
             row_limit = limit * gain_rows[i]
+            above = 0
+            for j in range(w):
+                above += line[j] > row_limit * gain_cols[j]
+            if above == 0:
+                continue
             for j in range(w):
                 v = line[j]
-                if not v > row_limit * gain_cols[j]:
-                    continue
-                peak = True
-                for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
-                    for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
-                        if dog[t, ii, jj] > v:
-                            peak = False
-                            break
-                    if not peak:
-                        break
-                if peak:
+                if v > row_limit * gain_cols[j] and _is_peak(band, i, j, v, radius, h):
                     if found < cap:
                         rows[task, found] = i
                         cols[task, found] = j
@@ -218,42 +327,98 @@ def local_maxima(dog, limits, gain_rows, gain_cols, radius, n_strips, rows, cols
 
 
 @numba.njit(cache=True)
-def _valley(dog_t, r0, c0, r1, c1):
-    """Lowest value of ``dog_t`` on the straight line between two pixels (nearest pixels)."""
+def _higher_near(p, q, rows, cols, values, merge_radius):
+    """Whether maximum ``q`` is higher than ``p`` (ties: the earlier one) and within
+    ``merge_radius`` px of it."""
+    if q == p or values[q] < values[p] or (values[q] == values[p] and q > p):
+        return False
+    dr = rows[q] - rows[p]
+    dc = cols[q] - cols[p]
+    return dr * dr + dc * dc <= merge_radius * merge_radius
+
+
+@numba.njit(cache=True)
+def count_higher(starts, rows, cols, values, merge_radius, counts):
+    """``counts[p]``: the maxima of the same frame higher than ``p`` within ``merge_radius``."""
+    for t in range(len(starts) - 1):
+        for p in range(starts[t], starts[t + 1]):
+            k = 0
+            for q in range(starts[t], starts[t + 1]):
+                k += _higher_near(p, q, rows, cols, values, merge_radius)
+            counts[p] = k
+
+
+@numba.njit(cache=True)
+def list_higher(starts, rows, cols, values, merge_radius, offsets, higher):
+    """``higher[offsets[p] : offsets[p + 1]]``: the maxima counted by `count_higher`."""
+    for t in range(len(starts) - 1):
+        for p in range(starts[t], starts[t + 1]):
+            k = offsets[p]
+            for q in range(starts[t], starts[t + 1]):
+                if _higher_near(p, q, rows, cols, values, merge_radius):
+                    higher[k] = q
+                    k += 1
+
+
+@numba.njit(cache=True)
+def line_pixel(r0, c0, r1, c1, k):
+    """Pixel ``k`` of the ``max(|dr|, |dc|) + 1`` nearest pixels on the line between two."""
     steps = max(abs(r1 - r0), abs(c1 - c0))
-    low = np.inf
-    for k in range(steps + 1):
-        f = k / steps if steps > 0 else 0.0
-        v = dog_t[int(round(r0 + f * (r1 - r0))), int(round(c0 + f * (c1 - c0)))]
-        low = min(low, v)
-    return low
+    f = k / steps if steps > 0 else 0.0
+    return int(round(r0 + f * (r1 - r0))), int(round(c0 + f * (c1 - c0)))
 
 
-@numba.njit(parallel=True, cache=True)
-def merge_and_pair(dog, starts, rows, cols, values, noise, merge_radius, dip, half, keep, close):
-    """Per frame (peaks of frame ``t`` are ``starts[t]:starts[t + 1]``):
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _band_at(frame, offset, gain, scale, background, factor, weights, i, j):
+    """The band-passed frame at pixel ``(i, j)``, computed there alone."""
+    h, w = frame.shape
+    r = (len(weights) - 1) // 2
+    total = np.float32(0.0)
+    for k in range(2 * r + 1):
+        ii = _clip(i + k - r, h)
+        along = np.float32(0.0)
+        for m in range(2 * r + 1):
+            along += weights[m] * _photon_at(frame, offset, gain, scale, ii, _clip(j + m - r, w))
+        total += weights[k] * along
+    return total - _background_at(background, factor, i, j)
 
-    ``keep`` is False for a maximum within ``merge_radius`` px of a higher one with no dip of at
-    least ``dip`` noise units between them (noise ripples on one wide spot, not two emitters);
-    ``close`` is True for a kept maximum with another kept one within ``half`` px (Chebyshev).
+
+@numba.njit(cache=True)
+def valleys_in_frames(
+    frames, offset, gain, scale, background, factor, weights, frame, rows, cols, first, second,
+    out,
+):  # fmt: skip
+    """``out[k]``: the lowest band-passed value on the line from maximum ``first[k]`` to
+    ``second[k]`` (both of frame ``frame[first[k]]``), computed at the line's pixels."""
+    for k in range(len(first)):
+        p, q = first[k], second[k]
+        t = frame[p]
+        steps = max(abs(rows[q] - rows[p]), abs(cols[q] - cols[p]))
+        low = np.inf
+        for m in range(steps + 1):
+            i, j = line_pixel(rows[p], cols[p], rows[q], cols[q], m)
+            v = _band_at(frames[t], offset, gain, scale, background[t], factor, weights, i, j)
+            low = min(low, v)
+        out[k] = low
+
+
+@numba.njit(cache=True)
+def merge_and_pair(starts, rows, cols, values, noise, offsets, valleys, dip, half, keep, close):
+    """Per frame (maxima of frame ``t`` are ``starts[t]:starts[t + 1]``):
+
+    ``keep`` is False for a maximum with no dip of at least ``dip`` noise units towards one of the
+    higher maxima near it (``valleys[offsets[p] : offsets[p + 1]]``, the lowest value on the line
+    to each): noise ripples on one wide spot, not two emitters; ``close`` is True for a kept
+    maximum with another kept one within ``half`` px (Chebyshev).
     """
-    n_frames = len(starts) - 1
-    for t in numba.prange(n_frames):
+    for t in range(len(starts) - 1):
         a = starts[t]
         b = starts[t + 1]
         for p in range(a, b):
             keep[p] = True
             close[p] = False
-        for p in range(a, b):
-            for q in range(a, b):
-                if q == p or values[q] < values[p] or (values[q] == values[p] and q > p):
-                    continue
-                dr = rows[q] - rows[p]
-                dc = cols[q] - cols[p]
-                if dr * dr + dc * dc > merge_radius * merge_radius:
-                    continue
-                low = _valley(dog[t], rows[p], cols[p], rows[q], cols[q])
-                if values[p] - low < dip * noise[t]:
+            for k in range(offsets[p], offsets[p + 1]):
+                if values[p] - valleys[k] < dip * noise[t]:
                     keep[p] = False
                     break
         for p in range(a, b):
@@ -264,3 +429,16 @@ def merge_and_pair(dog, starts, rows, cols, values, noise, merge_radius, dip, ha
                     if abs(rows[q] - rows[p]) <= half and abs(cols[q] - cols[p]) <= half:
                         close[p] = True
                         break
+
+
+@numba.njit(cache=True)
+def valleys_in_band(band, frame, rows, cols, first, second, out):
+    """`valleys_in_frames` on stored band-passed frames ``band`` (t, H, W)."""
+    for k in range(len(first)):
+        p, q = first[k], second[k]
+        steps = max(abs(rows[q] - rows[p]), abs(cols[q] - cols[p]))
+        low = np.inf
+        for m in range(steps + 1):
+            i, j = line_pixel(rows[p], cols[p], rows[q], cols[q], m)
+            low = min(low, band[frame[p], i, j])
+        out[k] = low

@@ -16,6 +16,7 @@ both flagged ``close_pair``: their fits see each other's light.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numba
@@ -25,6 +26,7 @@ from scipy import ndimage
 
 from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_int, check_positive
+from latentz.camera import Camera
 from latentz.detect import _kernels as _k
 
 __all__ = [
@@ -36,6 +38,8 @@ __all__ = [
     "find_peaks",
     "roi_corners",
     "cut_rois",
+    "cut_photons",
+    "merge_maxima",
     "detect_arrays",
     "detect",
 ]
@@ -49,6 +53,8 @@ _MAD_TO_SIGMA = 1.4826
 #: between them, is a noise ripple on the same spot, not a second emitter.
 _MERGE_RADIUS_SIGMAS = 3.0
 _MERGE_DIP = 2.0
+#: Pixels per maximum that the kernels' output has room for at first.
+_PIXELS_PER_MAXIMUM = 32 * 32
 #: Chunks of fewer pixels are detected on one thread (`one_thread_if`).
 _SMALL_PIXELS = 2**20
 
@@ -298,6 +304,26 @@ def check_noise(noise: Any, n_frames: int) -> np.ndarray | None:
     return values
 
 
+def cut_photons(
+    stack: np.ndarray,
+    frame: np.ndarray,
+    row0: np.ndarray,
+    col0: np.ndarray,
+    roi_size: int,
+    camera: Camera | None = None,
+) -> np.ndarray:
+    """`cut_rois` of frames as stored (ADU when ``camera`` is given), in photoelectrons
+    (float64): ``(adu - offset) * gain / flatfield`` at each ROI's own pixels."""
+    rois = cut_rois(stack, frame, row0, col0, roi_size)
+    if camera is None:
+        return rois
+    photons = (rois - camera.offset) * camera.gain
+    if camera.flatfield is not None:
+        zero = np.zeros(len(row0), np.int64)
+        photons /= cut_rois(camera.flatfield[None], zero, row0, col0, roi_size)
+    return photons
+
+
 def detect_arrays(
     frames: Any,
     *,
@@ -306,13 +332,16 @@ def detect_arrays(
     sigma: float = 1.5,
     min_distance: int = 2,
     noise: Any = None,
+    camera: Camera | None = None,
 ) -> Detections:
     """Detect emitters in each frame and cut a ROI around each; the array core of `detect`.
 
     Parameters
     ----------
     frames : array_like (t, H, W) or (H, W)
-        Photoelectrons.
+        Photoelectrons, or ADU (any integer or float type, uint16 from a camera) when ``camera``
+        is given: each pixel is converted where the kernels read it, no photoelectron copy of the
+        frames is made.
     roi_size : int
         Side of the square ROIs in pixels (odd, >= 3, at most the frame's smaller side).
     threshold : float, optional
@@ -323,10 +352,13 @@ def detect_arrays(
     noise : array_like (t,), optional
         Noise of each band-passed frame in photoelectrons, when known (`band_noise`, for
         frames of the same movie); default: estimated on each frame.
+    camera : Camera, optional
+        Offset (ADU), gain (photoelectrons per ADU) and flatfield of ADU frames.
 
     Returns
     -------
     Detections
+        ROIs in photoelectrons (float64).
     """
     stack, roi_size = check_frames(frames, roi_size)
     n_frames, height, width = stack.shape
@@ -337,12 +369,53 @@ def detect_arrays(
     sigma = check_positive("sigma", sigma)
     min_distance = check_int("min_distance", min_distance, minimum=1)
     with one_thread_if(stack.size < _SMALL_PIXELS):
+        chunk = _prepared(stack, sigma, camera)
+        noise = _noise_levels(chunk) if noise is None else noise
         frame, rows, cols, snr, close = _maxima(
-            stack, threshold, sigma, min_distance, roi_size // 2, noise
+            chunk, threshold, min_distance, roi_size // 2, noise
         )
     row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
-    rois = cut_rois(stack, frame, row0, col0, roi_size)
+    rois = cut_photons(chunk.frames, frame, row0, col0, roi_size, camera)
     return Detections(frame, rows, cols, snr, row0, col0, edge, close, rois)
+
+
+class _Chunk(NamedTuple):
+    """Frames as stored, their camera terms and wide background: the kernels' first arguments
+    (`_kernels.detect_strips`)."""
+
+    frames: np.ndarray
+    offset: np.float32
+    gain: np.float32
+    scale: np.ndarray  # gain / flatfield (H, W) float32, or (0, 0) for a uniform camera
+    background: np.ndarray  # (t, hs, ws) float32
+    factor: int
+    weights: np.ndarray  # float32
+    sigma: float
+
+    @property
+    def args(self) -> tuple:
+        return (self.frames, self.offset, self.gain, self.scale, self.background, self.factor,
+                self.weights)  # fmt: skip
+
+
+def _prepared(stack: np.ndarray, sigma: float, camera: Camera | None) -> _Chunk:
+    """The chunk's camera terms and its wide background (block means, blurred) for the
+    band-pass of scale ``sigma`` px (`filter_plan`)."""
+    plan = filter_plan(sigma)
+    stack = np.ascontiguousarray(stack)
+    n, height, width = stack.shape
+    offset, gain, scale = np.float32(0.0), np.float32(1.0), np.empty((0, 0), np.float32)
+    if camera is not None:
+        offset, gain = np.float32(camera.offset), np.float32(camera.gain)
+        flat = camera.flatfield_region((height, width))
+        if flat is not None:
+            scale = (camera.gain / flat).astype(np.float32)
+    shrunk = np.empty((n, -(-height // plan.factor), -(-width // plan.factor)), np.float32)
+    _k.block_means(stack, offset, gain, scale, plan.factor, shrunk)
+    background = np.empty_like(shrunk)
+    _k.blur(shrunk, plan.wide_weights.astype(np.float32), background)
+    weights = plan.weights.astype(np.float32)
+    return _Chunk(stack, offset, gain, scale, background, plan.factor, weights, sigma)
 
 
 def _strips(n_frames: int, height: int) -> int:
@@ -351,78 +424,93 @@ def _strips(n_frames: int, height: int) -> int:
     return max(1, min(want, height // 64))
 
 
-def band_noise(frames: Any, *, sigma: float = 1.5) -> np.ndarray:
+def band_noise(frames: Any, *, sigma: float = 1.5, camera: Camera | None = None) -> np.ndarray:
     """Noise of each band-passed frame (t, H, W) in photoelectrons, as `detect_arrays`
     estimates it (numba): pass it back there to detect later frames of the same movie without
-    estimating it again (a median of every pixel of a small frame costs more than detecting)."""
+    estimating it again (a median over a small frame costs more than detecting it)."""
     stack, _ = check_frames(frames, 3)
+    sigma = check_positive("sigma", sigma)
     with one_thread_if(stack.size < _SMALL_PIXELS):
-        return _noise_levels(_band_passed(stack, filter_plan(check_positive("sigma", sigma))))
+        return _noise_levels(_prepared(stack, sigma, camera))
 
 
-def _band_passed(stack: np.ndarray, plan: FilterPlan) -> np.ndarray:
-    """The band-pass of every frame (float32; numba, in (frame, strip) tasks)."""
-    n, height, width = stack.shape
-    if stack.dtype.kind == "f" and stack.dtype != np.float64:
-        stack = stack.astype(np.float32)
-    shrunk = np.empty((n, -(-height // plan.factor), -(-width // plan.factor)), np.float32)
-    _k.block_means(stack, plan.factor, shrunk)
-    background = np.empty_like(shrunk)
-    _k.blur(shrunk, plan.wide_weights.astype(np.float32), background)
-    dog = np.empty(stack.shape, np.float32)
-    _k.band_pass_strips(
-        stack, background, plan.factor, plan.weights.astype(np.float32), _strips(n, height), dog
-    )
-    return dog
-
-
-def _noise_levels(dog: np.ndarray) -> np.ndarray:
-    noise = np.empty(dog.shape[0])
-    _k.noise_levels(dog, noise_stride(dog.shape), _MAD_TO_SIGMA, noise)
+def _noise_levels(chunk: _Chunk) -> np.ndarray:
+    """`noise_level` of each band-passed frame, from the band-pass at its sample pixels only."""
+    n, height, width = chunk.frames.shape
+    stride = noise_stride((height, width))
+    samples = np.empty((n, -(-height // stride), -(-width // stride)), np.float32)
+    _k.noise_samples(*chunk.args, stride, samples)
+    noise = np.empty(n)
+    _k.noise_levels(samples, _MAD_TO_SIGMA, noise)
     return _usable_noise(noise)
 
 
 def _maxima(
-    stack: np.ndarray,
-    threshold: float,
-    sigma: float,
-    min_distance: int,
-    half: int,
-    noise: np.ndarray | None = None,
+    chunk: _Chunk, threshold: float, min_distance: int, half: int, noise: np.ndarray
 ) -> tuple[np.ndarray, ...]:
     """(frame, row, col, snr, close_pair) of the merged maxima of every frame (numba)."""
-    n, height, width = stack.shape
-    plan = filter_plan(sigma)
-    dog = _band_passed(stack, plan)
+    n, height, width = chunk.frames.shape
     strips = _strips(n, height)
-    noise = _noise_levels(dog) if noise is None else noise
     limits = (threshold * noise).astype(np.float32)
-    gain_rows = edge_noise_gain(height, plan.weights).astype(np.float32)
-    gain_cols = edge_noise_gain(width, plan.weights).astype(np.float32)
+    weights = filter_plan(chunk.sigma).weights
+    gain_rows = edge_noise_gain(height, weights).astype(np.float32)
+    gain_cols = edge_noise_gain(width, weights).astype(np.float32)
     counts = np.zeros(n * strips, np.int64)
-    cap = 256
+    # room for a maximum per 32 x 32 px (a fuller task is rerun with room for its count)
+    cap = max(256, height * width // (strips * _PIXELS_PER_MAXIMUM))
     while True:
         rows = np.empty((n * strips, cap), np.int64)
         cols = np.empty((n * strips, cap), np.int64)
         values = np.empty((n * strips, cap), np.float32)
-        _k.local_maxima(
-            dog, limits, gain_rows, gain_cols, min_distance, strips, rows, cols, values, counts
-        )
+        _k.detect_strips(
+            *chunk.args, limits, gain_rows, gain_cols, min_distance, strips, rows, cols, values,
+            counts,
+        )  # fmt: skip
         if counts.max(initial=0) <= cap:
             break
         cap = int(counts.max())
     taken = np.arange(cap)[None, :] < counts[:, None]
     rows, cols, values = rows[taken], cols[taken], values[taken].astype(np.float64)
     frame = np.repeat(np.arange(n * strips) // strips, counts)
-    starts = np.searchsorted(frame, np.arange(n + 1))
-    keep = np.empty(len(rows), np.bool_)
-    close = np.empty(len(rows), np.bool_)
-    _k.merge_and_pair(
-        dog, starts, rows, cols, values, noise, _MERGE_RADIUS_SIGMAS * sigma, _MERGE_DIP, half,
-        keep, close,
-    )  # fmt: skip
+
+    def valleys(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        out = np.empty(len(first))
+        _k.valleys_in_frames(*chunk.args, frame, rows, cols, first, second, out)
+        return out
+
+    keep, close = merge_maxima(frame, rows, cols, values, noise, chunk.sigma, half, valleys)
     snr = values / noise[frame]
     return frame[keep], rows[keep], cols[keep], snr[keep], close[keep]
+
+
+def merge_maxima(
+    frame: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    values: np.ndarray,
+    noise: np.ndarray,
+    sigma: float,
+    half: int,
+    valleys: Callable[[np.ndarray, np.ndarray], np.ndarray],
+) -> tuple[np.ndarray, np.ndarray]:
+    """(keep, close_pair) of maxima ordered by ``frame``: a maximum within 3 sigma of a higher one
+    with no dip of 2 noise units between them is a ripple of the same spot (not kept); a kept one
+    with another within ``half`` px is a close pair. ``valleys(first, second)`` gives the lowest
+    band-passed value on the line between maxima ``first[k]`` and ``second[k]``."""
+    starts = np.searchsorted(frame, np.arange(len(noise) + 1))
+    radius = _MERGE_RADIUS_SIGMAS * sigma
+    counts = np.empty(len(rows), np.int64)
+    _k.count_higher(starts, rows, cols, values, radius, counts)
+    offsets = np.zeros(len(rows) + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    higher = np.empty(offsets[-1], np.int64)
+    _k.list_higher(starts, rows, cols, values, radius, offsets, higher)
+    lows = valleys(np.repeat(np.arange(len(rows)), counts), higher)
+    keep = np.empty(len(rows), np.bool_)
+    close = np.empty(len(rows), np.bool_)
+    _k.merge_and_pair(starts, rows, cols, values, noise, offsets, lows, _MERGE_DIP, half, keep,
+                      close)  # fmt: skip
+    return keep, close
 
 
 def detect(

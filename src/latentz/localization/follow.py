@@ -26,7 +26,13 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from latentz.camera import Camera
-from latentz.detect import band_noise, cut_rois, default_threshold, detect_arrays, roi_corners
+from latentz.detect import (
+    band_noise,
+    cut_photons,
+    default_threshold,
+    detect_arrays,
+    roi_corners,
+)
 from latentz.fit.api import FitResult, fit_arrays, replace_rows, result_table, with_sandwich
 
 __all__ = ["localize_tracked"]
@@ -81,13 +87,7 @@ class _Source:
         if not isinstance(frame, np.ndarray):  # a dask array: read the frame once
             frame = np.asarray(frame)
         zero = np.zeros(len(row0), np.int64)
-        rois = cut_rois(frame[None], zero, row0, col0, size)
-        if self.camera is None:
-            return rois
-        photons = (rois - self.camera.offset) * self.camera.gain
-        if self.camera.flatfield is not None:
-            photons /= cut_rois(self.camera.flatfield[None], zero, row0, col0, size)
-        return photons
+        return cut_photons(frame[None], zero, row0, col0, size, self.camera)
 
     def band(self, t: int, rows: slice, cols: slice) -> np.ndarray:
         """Photoelectrons of a rectangle of frame ``t``; only its pixels are read."""

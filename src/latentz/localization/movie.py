@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import dask
+import dask.array as da
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
@@ -22,7 +23,7 @@ from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import cut_rois, detect_arrays, roi_corners
+from latentz.detect import cut_photons, detect_arrays, roi_corners
 from latentz.fit.api import (
     FIT_COLUMNS,
     METHODS,
@@ -38,7 +39,7 @@ from latentz.localization.quality import assess, check_calibration_fits
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["localize", "check_camera_offset", "LOCALIZE_COLUMNS"]
+__all__ = ["localize", "check_camera_offset", "check_roi_fits", "LOCALIZE_COLUMNS"]
 
 #: Columns of one chunk's detections and fits, in order.
 _CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
@@ -50,8 +51,33 @@ _CHUNK_BYTES = 64 * 2**20
 
 def check_camera_offset(camera: Camera, movie: Any) -> None:
     """Warn if the camera offset (ADU) is above the median of the movie's first frame (every
-    fourth pixel): an offset above most pixels means the wrong camera settings."""
-    check_offset(camera.offset, float(np.median(np.asarray(movie[0][::4, ::4]))))
+    fourth pixel): an offset above most pixels means the wrong camera settings.
+
+    A lazy movie is read here, in this process: through a dask.distributed client its file
+    reader would have to be pickled, and it holds a lock."""
+    sample = movie[0][::4, ::4]
+    if isinstance(sample, da.Array):
+        sample = sample.compute(scheduler="synchronous")
+    check_offset(camera.offset, float(np.median(np.asarray(sample))))
+
+
+def check_roi_fits(
+    roi_size: int, frame_shape: tuple[int, ...], calibration: Calibration | None = None
+) -> None:
+    """Raise one line when ``roi_size`` (pixels) is even or larger than the frames; when it is
+    the calibration's, the line names both sizes and the two ways out."""
+    largest = min(frame_shape)
+    if roi_size % 2 == 1 and roi_size <= largest:
+        return
+    fits = largest if largest % 2 else largest - 1
+    if calibration is not None and roi_size == calibration.roi_size and roi_size > largest:
+        raise ValueError(
+            f"The calibration's {roi_size} px ROI does not fit the {frame_shape[0]} x "
+            f"{frame_shape[1]} px images: recalibrate with roi_size={fits} (--roi-size {fits}; "
+            f"any odd size up to {fits} fits), or localize with roi_size={fits} and accept the "
+            "warning that z is then measured in another ROI than the calibration's."
+        )
+    raise ValueError(f"Expected `roi_size` to be odd and at most {largest}, got {roi_size}.")
 
 
 def _localize_chunk(
@@ -66,11 +92,18 @@ def _localize_chunk(
 ) -> pd.DataFrame:
     """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"); ``x, y`` in
     full-frame pixels."""
-    photons = _photons(np.asarray(block), camera)
-    detector = detect_arrays
+    block = np.asarray(block)
     if device == "cuda":
-        from latentz.detect._cuda import detect_arrays_cuda as detector
-    found = detector(photons, roi_size=roi_size, threshold=threshold, sigma=sigma)
+        from latentz.detect._cuda import detect_arrays_cuda
+
+        block = _photons(block, camera)
+        found = detect_arrays_cuda(block, roi_size=roi_size, threshold=threshold, sigma=sigma)
+        camera_terms = None
+    else:  # the kernels read the frames as stored and convert each pixel where they read it
+        found = detect_arrays(
+            block, roi_size=roi_size, threshold=threshold, sigma=sigma, camera=camera
+        )
+        camera_terms = camera
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
@@ -84,10 +117,12 @@ def _localize_chunk(
     ok = np.isfinite(x) & np.isfinite(y)
     rows = np.where(ok, np.rint(y), found.row).astype(np.int64)
     cols = np.where(ok, np.rint(x), found.col).astype(np.int64)
-    new_row0, new_col0, new_edge = roi_corners(rows, cols, roi_size, photons.shape[-2:])
+    new_row0, new_col0, new_edge = roi_corners(rows, cols, roi_size, block.shape[-2:])
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
-        again = cut_rois(photons, found.frame[moved], new_row0[moved], new_col0[moved], roi_size)
+        again = cut_photons(
+            block, found.frame[moved], new_row0[moved], new_col0[moved], roi_size, camera_terms
+        )
         refit = fit_arrays(again, method=method, readnoise=readnoise, device=device)
         fit = replace_rows(fit, refit, moved)
         rois = rois.copy()
@@ -113,9 +148,7 @@ def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
 
 
 def _photons(block: np.ndarray, camera: Camera | None) -> np.ndarray:
-    """Photoelectrons of a chunk, float32 unless the input is float64: detection runs in
-    float32 and ROIs are cut to float64 for the fits, so a float64 copy of the chunk would only
-    cost memory traffic."""
+    """Photoelectrons of a chunk for the GPU, float32 unless the input is float64."""
     if camera is None:
         return block if block.dtype.kind == "f" else block.astype(np.float32)
     photons = (block.astype(np.float32) - np.float32(camera.offset)) * np.float32(camera.gain)
@@ -211,21 +244,26 @@ def _settings(
     return camera, roi_size, method
 
 
-def _chunk_frames(chunk_frames: int | None, device: str, shape: tuple[int, ...]) -> int:
-    """Frames per chunk: as given, else as many (n, H, W) frames as fill the chunk's bytes
-    (8x more on the GPU)."""
+def _chunk_frames(
+    chunk_frames: int | None, device: str, shape: tuple[int, ...], itemsize: int
+) -> int:
+    """Frames per chunk: as given, else as many (n, H, W) frames of ``itemsize`` bytes per
+    pixel as fill the chunk's bytes (the CPU kernels read frames as stored); on the GPU, 8x
+    more bytes of float64 photoelectrons."""
     if chunk_frames is None:
-        chunk_bytes = _CHUNK_BYTES * (8 if device == "cuda" else 1)
-        chunk_frames = max(1, chunk_bytes // (8 * shape[1] * shape[2]))
+        if device == "cuda":
+            itemsize, chunk_bytes = 8, 8 * _CHUNK_BYTES
+        else:
+            chunk_bytes = _CHUNK_BYTES
+        chunk_frames = max(1, chunk_bytes // (itemsize * shape[1] * shape[2]))
     return check_int("chunk_frames", chunk_frames, minimum=1)
 
 
-def _check_frames(shape: tuple[int, ...], camera: Camera | None, roi_size: int) -> None:
+def _check_frames(
+    shape: tuple[int, ...], camera: Camera | None, roi_size: int, calibration: Calibration | None
+) -> None:
     """Refuse an even ROI or one larger than the frames, and a flatfield of another size."""
-    if roi_size % 2 == 0 or roi_size > min(shape[1:]):
-        raise ValueError(
-            f"Expected `roi_size` to be odd and at most {min(shape[1:])}, got {roi_size}."
-        )
+    check_roi_fits(roi_size, shape[1:], calibration)
     if camera is not None and camera.flatfield is not None:
         if camera.flatfield.shape != shape[1:]:
             raise ValueError(
@@ -280,7 +318,8 @@ def localize(
         Smoothing scale of the detection band-pass, in pixels (about the spot width).
     chunk_frames : int, optional
         Frames per task; a few chunks (one per worker thread) are held in memory at once. The
-        default keeps a chunk near 64 MB of float64 frames (512 MB on a GPU).
+        default keeps a chunk near 64 MB of frames as stored (8 frames of 2048 x 2048 uint16;
+        512 MB of float64 on a GPU).
     device : {"auto", "cpu", "cuda"}
         Where detection and fits run (:func:`latentz._shared.engine.resolve_device`); "cuda" uses
         numba's CUDA target (extra ``latentz[gpu]``) and finds the same spots.
@@ -314,8 +353,8 @@ def localize(
     roi_size = check_int("roi_size", roi_size, minimum=3)
     if camera is not None:
         check_camera_offset(camera, movie)
-    chunk_frames = _chunk_frames(chunk_frames, device, movie.shape)
-    _check_frames(movie.shape, camera, roi_size)
+    chunk_frames = _chunk_frames(chunk_frames, device, movie.shape, movie.dtype.itemsize)
+    _check_frames(movie.shape, camera, roi_size, calibration)
     options = (camera, roi_size, threshold, method, sigma, device)
     if track:
         detect_every = check_int("detect_every", detect_every, minimum=1)
@@ -331,7 +370,7 @@ def localize(
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(table)
-    table = assess(table, calibration, roi_size=roi_size)
+    table = assess(table, calibration)
     if calibration is not None:
         table = check_calibration_fits(table)
     return table

@@ -6,6 +6,10 @@ its aberrations vary across the field as polynomials, smooth random fields or fi
 defects (:mod:`.fields`). :mod:`.datasets` makes calibration stacks and test frames;
 :mod:`.family` draws whole microscopes at random; :mod:`.truth` scores localizations against
 the truth from geometry; :mod:`.floor` gives each study's oracle floor.
+
+Single molecules are scored apart: :mod:`.challenge` matches localizations to true emitters as the
+SMLM 2016 challenge does, and :mod:`.molecules` localizes the molecules of
+:mod:`latentz.simulate.molecules` with a bead calibration of the same simulated microscope.
 """
 
 from latentz.validation.datasets import SIZES, ValidationData, make_data

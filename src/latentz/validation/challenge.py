@@ -26,6 +26,8 @@ __all__ = [
     "ALPHA_AXIAL_PER_NM",
     "ALPHA_LATERAL_PER_NM",
     "challenge_score",
+    "correct_rows",
+    "offset_pairs",
     "efficiency",
     "match_frame",
     "match_frames",
@@ -176,3 +178,37 @@ def challenge_score(
         "bias_y_nm": bias[1],
         "bias_z_nm": bias[2],
     }
+
+
+def offset_pairs(
+    truth: pd.DataFrame,
+    locs: pd.DataFrame,
+    *,
+    lateral_nm: float = 250.0,
+    axial_nm: float = 500.0,
+) -> tuple[pd.DataFrame, float]:
+    """The pairs of :func:`match_frames` after one z offset is removed, and that offset (nm).
+
+    As the challenge scores 3D data, the offset is the median axial error of the pairs matched
+    within ``lateral_nm`` at any depth (the calibration's z = 0 and the truth's focal plane need
+    not agree); then pairs are matched within ``lateral_nm`` laterally and ``axial_nm``
+    axially, and their ``dz_nm`` is after the offset."""
+    loose = match_frames(truth, locs, lateral_nm=lateral_nm, axial_nm=1e6)
+    offset = float(np.median(loose["dz_nm"])) if len(loose) else 0.0
+    shifted = locs.assign(z_nm=locs["z_nm"] - offset)
+    return match_frames(truth, shifted, lateral_nm=lateral_nm, axial_nm=axial_nm), offset
+
+
+def correct_rows(
+    truth: pd.DataFrame,
+    locs: pd.DataFrame,
+    *,
+    lateral_nm: float = 250.0,
+    axial_nm: float = 500.0,
+) -> tuple[np.ndarray, float]:
+    """Which rows of ``locs`` are correct, paired with a true emitter by :func:`offset_pairs`,
+    and the z offset removed (nm)."""
+    pairs, offset = offset_pairs(truth, locs, lateral_nm=lateral_nm, axial_nm=axial_nm)
+    correct = np.zeros(len(locs), bool)
+    correct[locs.index.get_indexer(pairs["locs_row"])] = True
+    return correct, offset
