@@ -32,6 +32,7 @@ from latentz.calibration.roi import (
     choose_roi,
     expected_errors,
     focus_width_px,
+    frame_background,
     roi_limit,
     spacing_limit,
 )
@@ -209,7 +210,8 @@ def calibrate(
         cal, caught = run(roi_size)
         _say(caught)
         return cal
-    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit)
+    background = frame_background(loaded, camera)
+    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit, background)
 
 
 def _load_stacks(stacks: Any, z: np.ndarray, camera: Camera) -> tuple[list[np.ndarray], np.ndarray]:
@@ -278,11 +280,12 @@ def _say(caught: list) -> None:
         warnings.warn(message.message, message.category, stacklevel=4)
 
 
-def _calibrate_roi(run, first: int, limit: int) -> Calibration:
+def _calibrate_roi(run, first: int, limit: int, background: np.ndarray) -> Calibration:
     """Calibrate at each candidate ROI (:func:`~latentz.calibration.roi.candidate_rois`, from
     the in-focus width of a first calibration at ``first`` px, never above ``limit`` nor the
-    particles' spacing) and keep the one whose calibration localizes typical emitters best
-    (:func:`~latentz.calibration.roi.choose_roi`); ``cal.options["roi_choice"]`` says why.
+    particles' spacing) and keep the one whose calibration localizes typical emitters over the
+    images' ``background`` (n_stacks, n_z) best (:func:`~latentz.calibration.roi.choose_roi`);
+    ``cal.options["roi_choice"]`` says why.
     A candidate that fails is skipped; only when every one fails is its error raised."""
     runs: dict[int, tuple[Calibration, list]] = {}
     failures: dict[int, tuple[Exception, list]] = {}
@@ -309,7 +312,10 @@ def _calibrate_roi(run, first: int, limit: int) -> Calibration:
         if roi not in runs and roi not in failures:
             attempt(roi)
     scored = {r: run_ for r, run_ in runs.items() if r <= upper} or runs
-    scores = {r: {**expected_errors(cal), "kept": cal.kept.size} for r, (cal, _) in scored.items()}
+    scores = {
+        r: {**expected_errors(cal, background), "kept": cal.kept.size}
+        for r, (cal, _) in scored.items()
+    }
     chosen, record = choose_roi(scores)
     record["failed"] = {str(r): str(e) for r, (e, _) in failures.items()}
     cal, caught = runs[chosen]
