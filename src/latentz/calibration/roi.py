@@ -23,7 +23,8 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
    (:attr:`~latentz.calibration.Calibration.usable_planes`) the error is that of a guess
    anywhere in the stack (span/√12), as is any error above it.
 3. **Choice** (:func:`choose_roi`): ``core_nm`` is the RMS of those errors over the *core*
-   planes (where every candidate measures at least half its kept particles: near focus);
+   planes (where every candidate measures: at least half its kept particles usable, and some
+   kind of emitter localized to better than half a guess; near focus);
    ``range_nm`` the same over every plane any candidate measures; each has a standard error
    over the particles. A candidate is *as good as* the best when it exceeds it by no more than
    their noise (the standard errors in quadrature) or :data:`CORE_TOLERANCE`, whichever is
@@ -37,14 +38,12 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.special import erfinv
 
-from latentz.calibration.dim_crossval import dim_held_out
-from latentz.calibration.precision import crlb_sigma_z
+from latentz.calibration.roi_emitters import emitter_errors
 from latentz.calibration.shape import uses_amplitude
 from latentz.calibration.shape_choice import _cross_validated
 
@@ -79,7 +78,7 @@ HALF_WIDTH_PER_SIGMA = float(math.sqrt(2.0) * erfinv(math.sqrt(PHOTON_FRACTION))
 MIN_ROI = 7
 #: Pixels between candidate ROIs, and how many there are at most.
 ROI_STEP = 4
-N_CANDIDATES = 5
+N_CANDIDATES = 3
 #: Most fraction of the particles allowed a neighbour inside their ROI (:func:`spacing_limit`).
 CROWDED_FRACTION = 0.25
 #: Photon counts of the typical single emitters the ROI is judged for.
@@ -151,39 +150,32 @@ def frame_background(stacks: list[np.ndarray], camera: Camera) -> np.ndarray:
 
 
 def expected_errors(
-    cal: Calibration, background: np.ndarray | None = None
+    cal: Calibration, stacks: list[np.ndarray], camera: Camera, background: np.ndarray
 ) -> dict[str, np.ndarray]:
     """Expected z error (nm) of typical emitters on every plane of ``cal``'s stack (module
-    notes, step 2): ``errors`` (n_kinds, n_z), one row per photon count of
-    :data:`EMITTER_PHOTONS` and a last for emitters like the calibration particles, RMS over
-    the kept particles, the emitters over ``background`` ((n_stacks, n_z) photons per pixel,
-    :func:`frame_background`; the particles' fitted one if None); ``particle_sq``
-    (n_kinds, n_kept, n_z) each kept particle's capped squared error (NaN where unmeasured),
-    for the standard errors of :func:`choose_roi`; ``measured`` (n_z,) the fraction of them
-    whose plane is usable;
-    ``guess_nm`` the error of a guess; ``usable_nm`` the median over the kept particles of
-    their usable range's ends (tilt-corrected z)."""
+    notes, step 2), from the calibration ``stacks`` (ADU) read by ``camera`` and their
+    ``background`` ((n_stacks, n_z) photons per pixel, :func:`frame_background`): ``errors``
+    (n_kinds, n_z), one row per photon count of :data:`EMITTER_PHOTONS` and a last for emitters
+    like the calibration particles, RMS over the kept particles; ``particle_sq`` (n_kinds,
+    n_kept, n_z) each kept particle's capped squared error (NaN where unmeasured), for the
+    standard errors of :func:`choose_roi`; ``measured`` (n_z,) the fraction of them whose
+    plane is usable; ``guess_nm`` the error of a guess; ``usable_nm`` the median over the kept
+    particles of their usable range's ends (tilt-corrected z)."""
     local, shape, kept = cal.local, cal.shape, cal.kept
     use = np.zeros(cal.culled.size, bool)
     use[kept] = True
     use &= local.shapes[shape].inverse.valid
     cv = _cross_validated(local, shape, use, cal.positions, reference=uses_amplitude(shape))
-    traces = cal.traces
-    if background is not None:
-        traces = replace(traces, data={**traces.data, "background": background[traces.stack]})
-    z = traces.z_nm
+    z = cal.traces.z_nm
     guess = float(np.ptp(z)) / np.sqrt(12.0)
-    kinds = [
-        np.hypot(dim_held_out(cal, photons),
-                 crlb_sigma_z(local, traces, shape, photons, roi_size=cal.roi_size,
-                              readnoise=cal.camera.readnoise))  # fmt: skip
-        for photons in EMITTER_PHOTONS
-    ]
+    usable = ~np.isnan(cv)
+    kinds = [np.where(usable, emitter_errors(cal, stacks, camera, background, photons), np.nan)
+             for photons in EMITTER_PHOTONS]  # fmt: skip
     kinds.append(np.abs(cv))
     errors, squares = [], []
     for error in kinds:
-        measured = np.isfinite(error)[kept]
-        capped = np.where(measured, np.minimum(error[kept], guess), 0.0)
+        measured = ~np.isnan(error[kept])  # inf: not localized, a guess
+        capped = np.where(measured, np.minimum(np.abs(error[kept]), guess), 0.0)
         count = measured.sum(axis=0)
         rms = np.sqrt(np.sum(capped**2, axis=0) / np.maximum(count, 1))
         errors.append(np.where(count > 0, rms, guess))  # none measured: a guess
@@ -192,7 +184,7 @@ def expected_errors(
     return {
         "errors": np.array(errors),
         "particle_sq": np.array(squares),
-        "measured": np.isfinite(cv[kept]).mean(axis=0) if kept.size else np.zeros(z.size),
+        "measured": usable[kept].mean(axis=0) if kept.size else np.zeros(z.size),
         "guess_nm": guess,
         "usable_nm": np.asarray(usable_nm, dtype=np.float64),
     }
@@ -204,11 +196,11 @@ def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     ``reason`` and each candidate's ``core_nm`` and ``range_nm`` with their standard errors
     (``core_se_nm``, ``range_se_nm``), ``usable_nm`` and ``kept``."""
     rois = sorted(scores)
-    measured = np.array([scores[r]["measured"] for r in rois])
-    core = np.all(measured >= 0.5, axis=0)
+    measured = np.array([_measures(scores[r]) for r in rois])
+    core = np.all(measured, axis=0)
     if not core.any():  # no plane every candidate measures: judge on each one's own
-        core = np.any(measured >= 0.5, axis=0)
-    union = np.any(measured >= 0.5, axis=0)
+        core = np.any(measured, axis=0)
+    union = np.any(measured, axis=0)
     table = {}
     for r in rois:
         table[r] = {"usable_nm": [float(v) for v in scores[r]["usable_nm"]],
@@ -231,6 +223,13 @@ def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
         "reason": reason,
         "candidates": {str(r): t for r, t in table.items()},
     }
+
+
+def _measures(score: dict[str, Any]) -> np.ndarray:
+    """(n_z,) the planes where a candidate measures: at least half its kept particles usable,
+    and some kind of emitter localized to better than half a guess."""
+    best = np.min(score["errors"], axis=0)
+    return (score["measured"] >= 0.5) & (best < score["guess_nm"] / 2)
 
 
 def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:

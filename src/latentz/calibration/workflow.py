@@ -211,7 +211,8 @@ def calibrate(
         _say(caught)
         return cal
     background = frame_background(loaded, camera)
-    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit, background)
+    judge = functools.partial(expected_errors, stacks=loaded, camera=camera, background=background)
+    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit, judge)
 
 
 def _load_stacks(stacks: Any, z: np.ndarray, camera: Camera) -> tuple[list[np.ndarray], np.ndarray]:
@@ -280,12 +281,12 @@ def _say(caught: list) -> None:
         warnings.warn(message.message, message.category, stacklevel=4)
 
 
-def _calibrate_roi(run, first: int, limit: int, background: np.ndarray) -> Calibration:
+def _calibrate_roi(run, first: int, limit: int, judge) -> Calibration:
     """Calibrate at each candidate ROI (:func:`~latentz.calibration.roi.candidate_rois`, from
     the in-focus width of a first calibration at ``first`` px, never above ``limit`` nor the
-    particles' spacing) and keep the one whose calibration localizes typical emitters over the
-    images' ``background`` (n_stacks, n_z) best (:func:`~latentz.calibration.roi.choose_roi`);
-    ``cal.options["roi_choice"]`` says why.
+    particles' spacing) and keep the one whose calibration localizes typical emitters best
+    (``judge``: :func:`~latentz.calibration.roi.expected_errors` of a calibration;
+    :func:`~latentz.calibration.roi.choose_roi`); ``cal.options["roi_choice"]`` says why.
     A candidate that fails is skipped; only when every one fails is its error raised."""
     runs: dict[int, tuple[Calibration, list]] = {}
     failures: dict[int, tuple[Exception, list]] = {}
@@ -313,7 +314,7 @@ def _calibrate_roi(run, first: int, limit: int, background: np.ndarray) -> Calib
             attempt(roi)
     scored = {r: run_ for r, run_ in runs.items() if r <= upper} or runs
     scores = {
-        r: {**expected_errors(cal, background), "kept": cal.kept.size}
+        r: {**judge(cal), "kept": cal.kept.size}
         for r, (cal, _) in scored.items()
     }
     chosen, record = choose_roi(scores)
