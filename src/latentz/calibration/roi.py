@@ -235,7 +235,8 @@ def _measures(score: dict[str, Any]) -> np.ndarray:
 def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
     """RMS (nm) of one candidate's errors over ``planes`` (a guess's where it measures fewer
     than half its particles), and its standard error over the particles (delta method on
-    each particle's mean square; 0 without ``particle_sq``)."""
+    each particle's mean square; over the planes for a lone particle; 0 without
+    ``particle_sq``)."""
     if not planes.any():
         return np.inf, 0.0
     own = score["measured"] >= 0.5
@@ -245,11 +246,13 @@ def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
     if squares is None or squares.shape[1] < 2:
         return value, 0.0
     squares = np.where(own, squares, score["guess_nm"] ** 2)[:, :, planes]
-    per_particle = np.nanmean(np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1), axis=1)
-    per_particle = per_particle[np.isfinite(per_particle)]
-    if per_particle.size < 2:
+    samples = np.nanmean(np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1), axis=1)
+    if np.isfinite(samples).sum() < 2:  # a lone particle: its planes' noise draws instead
+        samples = np.nanmean(squares, axis=(0, 1))
+    samples = samples[np.isfinite(samples)]
+    if samples.size < 2:
         return value, 0.0
-    se_square = float(np.std(per_particle, ddof=1) / np.sqrt(per_particle.size))
+    se_square = float(np.std(samples, ddof=1) / np.sqrt(samples.size))
     return value, se_square / (2 * value) if value > 0 else 0.0
 
 

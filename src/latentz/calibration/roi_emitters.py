@@ -63,14 +63,17 @@ def emitter_errors(
 ) -> np.ndarray:
     """(n, n_z) z error (nm) of an emitter of ``photons`` photons made from each kept
     particle's image at each plane over ``background`` ((n_stacks, n_z) photons per pixel) and
-    localized as a spot at its nearest other kept particle (module notes); NaN for the other
-    particles, ``inf`` where the emitter is not localized in range."""
+    localized as a spot at its nearest other kept particle (module notes; a lone particle's at
+    its own place); NaN for the other particles, ``inf`` where the emitter is not localized in
+    range."""
     traces, n_z = cal.traces, cal.traces.z_nm.size
     errors = np.full((len(traces), n_z), np.nan)
     rows = cal.kept
-    if rows.size < 2:
+    if rows.size == 0:
         return errors
-    _, nearest = cKDTree(cal.positions[rows]).query(cal.positions[rows], k=2)
+    neighbour = rows  # a lone particle is its own neighbour: its error is not held out
+    if rows.size > 1:
+        neighbour = rows[cKDTree(cal.positions[rows]).query(cal.positions[rows], k=2)[1][:, 1]]
     images = particle_images(cal, stacks, camera, rows)
     bg = background[traces.stack[rows]][:, :, None, None]  # (k, n_z, 1, 1)
     brightness = np.nanmedian(
@@ -84,7 +87,7 @@ def emitter_errors(
     roi = cal.roi_size
     table = fit_rois(noisy.reshape(-1, roi, roi), method=cal.method, camera=fit_camera,
                      errors="sandwich")  # fmt: skip
-    to = cal.positions[rows[nearest[:, 1]]]  # each image placed at its nearest other particle
+    to = cal.positions[neighbour]  # each image placed at its nearest other particle
     spots = table.assign(x=np.repeat(to[:, 0], n_z), y=np.repeat(to[:, 1], n_z))
     spots.attrs["roi_size"] = roi
     with warnings.catch_warnings():
