@@ -8,31 +8,35 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
 
 1. **Candidates** (:func:`candidate_rois`): the smallest odd ROI that holds 95 % of an
    in-focus spot (:func:`roi_for_width` of the particles' narrowest width), then every
-   :data:`ROI_STEP` pixels, :data:`N_CANDIDATES` in all, none larger than the images allow
-   (:func:`roi_limit`) nor than the particles' spacing (:func:`spacing_limit`: at most a
-   quarter of them with a neighbour inside their ROI).
-2. **Score** (:func:`expected_errors`): each candidate is calibrated, and on every plane of the
-   stack the expected z error of typical emitters is taken over its kept particles: the
-   cross-validated error (each particle's images localized with the nearest *other*
-   particle's inverse model, as :mod:`~latentz.calibration.shape_choice` does), in quadrature
-   with the Cramér–Rao σ_z of an emitter of 10³ and of 10⁴ photons imaged like the particle in
-   that ROI over the images' own background (:func:`frame_background`: a bright particle's
-   fitted background holds its own halo in a small ROI, a dim emitter's does not), and, for
-   emitters like the calibration particles, the cross-validated error
-   alone. Where a particle's plane is outside its usable range
-   (:attr:`~latentz.calibration.Calibration.usable_planes`) the error is that of a guess
-   anywhere in the stack (span/√12), as is any error above it.
+   :data:`ROI_STEP` pixels, :data:`N_CANDIDATES` in all (so the ROI cannot run away from the
+   in-focus spot), none larger than the images allow (:func:`roi_limit`) nor than the
+   particles' spacing (:func:`spacing_limit`: at most a quarter of them with a neighbour
+   inside their ROI).
+2. **Score** (:func:`expected_errors`): each candidate is calibrated with each particle's own
+   models, and on every plane of the stack the expected z error of typical emitters is taken
+   over its kept particles: for emitters of 10³ and of 10⁴ photons, that of the particle's own
+   image made into such an emitter over the images' background (:func:`frame_background`: a
+   bright particle's fitted background holds its own halo in a small ROI, a dim emitter's
+   does not), fitted as ``localize`` fits and localized by ``apply`` at the nearest other
+   particle (:func:`~latentz.calibration.roi_emitters.emitter_errors`); for emitters like the
+   calibration particles, the cross-validated error of the bright image (each particle's
+   images localized with the nearest *other* particle's inverse model, as
+   :mod:`~latentz.calibration.shape_choice` does). Where a particle's plane is outside its
+   usable range (:attr:`~latentz.calibration.Calibration.usable_planes`) it is not counted; an
+   emitter not localized in range, and any error above a guess anywhere in the stack
+   (span/√12), counts as a guess.
 3. **Choice** (:func:`choose_roi`): ``core_nm`` is the RMS of those errors over the *core*
    planes (where every candidate measures: at least half its kept particles usable, and some
-   kind of emitter localized to better than half a guess; near focus);
-   ``range_nm`` the same over every plane any candidate measures; each has a standard error
-   over the particles. A candidate is *as good as* the best when it exceeds it by no more than
-   their noise (the standard errors in quadrature) or :data:`CORE_TOLERANCE`, whichever is
-   larger. The candidates as good as the best near focus are eligible, and the smallest of
-   them as good as the best of them over the range is chosen. So a larger ROI is taken only
-   where it measures better beyond the noise and costs nothing near focus, and a shorter
-   usable z range is preferred to lost precision near focus. A candidate whose calibration
-   fails is skipped, so the choice never fails where a smaller ROI works.
+   kind of emitter localized to better than half a guess; near focus); ``range_nm`` the same
+   over every plane any candidate measures; each has a standard error over the particles
+   (over the planes for a lone particle). A candidate is *as good as* the best when it
+   exceeds it by no more than their noise (the standard errors in quadrature) or
+   :data:`CORE_TOLERANCE`, whichever is larger. The candidates as good as the best near focus
+   are eligible, and the smallest of them as good as the best of them over the range is
+   chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
+   nothing near focus, and a shorter usable z range is preferred to lost precision near
+   focus. A candidate whose calibration fails is skipped, so the choice never fails where a
+   smaller ROI works.
 """
 
 from __future__ import annotations
