@@ -247,7 +247,7 @@ def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
     errors = np.where(own, score["errors"], score["guess_nm"])
     value = float(np.sqrt(np.mean(errors[:, planes] ** 2)))
     squares = score.get("particle_sq")
-    if squares is None or squares.shape[1] < 2:
+    if squares is None or squares.shape[1] == 0:
         return value, 0.0
     squares = np.where(own, squares, score["guess_nm"] ** 2)[:, :, planes]
     samples = np.nanmean(np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1), axis=1)
