@@ -85,8 +85,7 @@ def emitter_errors(
     noisy = rng.poisson(mean) + rng.normal(0.0, camera.readnoise, mean.shape)
     fit_camera = replace(camera, offset=0.0, gain=1.0, flatfield=None)
     roi = cal.roi_size
-    table = fit_rois(noisy.reshape(-1, roi, roi), method=cal.method, camera=fit_camera,
-                     errors="sandwich")  # fmt: skip
+    table = fit_rois(noisy.reshape(-1, roi, roi), method=cal.method, camera=fit_camera)
     to = cal.positions[neighbour]  # each image placed at its nearest other particle
     spots = table.assign(x=np.repeat(to[:, 0], n_z), y=np.repeat(to[:, 1], n_z))
     spots.attrs["roi_size"] = roi
