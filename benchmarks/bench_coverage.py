@@ -56,14 +56,13 @@ def simulator_case(diameter_sd_nm: float) -> tuple:
 def validation_case() -> tuple:
     """(calibration, apply output, error table) of the coverage test's validation case."""
     from latentz.validation import make_data
-    from latentz.validation.truth import localize_test, score, study_truth
+    from latentz.validation.truth import localize_test, score
 
     data = make_data("small", seed=1, n_frames=16)
-    truth = study_truth(data, roi_size=ROI)
     cal = lz.calibrate(data.stacks, data.z_nm, camera=data.camera, shape="rho_w", roi_size=ROI,
                        field_model="zernike")  # fmt: skip
     located = cal.apply(localize_test(data, roi_size=ROI))
-    errors = score(data, located, truth, cal)
+    errors = score(data, located)
     errors = errors[errors["in_range"].to_numpy(bool)].reset_index(drop=True)
     located = errors[["emitter", "frame"]].merge(located, on=["emitter", "frame"], how="left")
     return cal, located, errors

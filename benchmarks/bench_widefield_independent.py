@@ -40,7 +40,7 @@ from latentz.calibration.result import _track_reference
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.validation import SIZES, make_data
 from latentz.validation.datasets import emitter_images
-from latentz.validation.truth import localize_test, score, study_truth
+from latentz.validation.truth import localize_test, score
 
 OUT = Path(__file__).resolve().parent / "results"
 SHAPES = ("rho", "rho_w", "rho_A", "auto", "auto_A")
@@ -134,7 +134,7 @@ def noise_free_spots(
     return localize_test(clean, roi_size=roi_size)
 
 
-def error_budget(cal, data, truth, spots: pd.DataFrame, size: str) -> pd.DataFrame:
+def error_budget(cal, data, spots: pd.DataFrame, size: str) -> pd.DataFrame:
     """Where the z error of ``cal.apply(spots)`` comes from, in bins of the emitters' photons.
 
     The actual error (noisy spot minus truth) is split into: *noise*, the noisy spot minus the
@@ -155,7 +155,7 @@ def error_budget(cal, data, truth, spots: pd.DataFrame, size: str) -> pd.DataFra
         matched = spots[key].merge(found.drop(columns="particle", errors="ignore"), on=key,
                                    how="left")  # fmt: skip
         z[name] = cal.apply(matched)["z_nm"].to_numpy()
-    errors = score(data, cal.apply(spots), truth, cal)
+    errors = score(data, cal.apply(spots))
     actual = errors["err_z_nm"].to_numpy()
     true_z = z["noisy"] - actual
     parts = pd.DataFrame({"photons": spots["photons"].to_numpy(), "actual": actual,
@@ -177,20 +177,19 @@ def error_budget(cal, data, truth, spots: pd.DataFrame, size: str) -> pd.DataFra
 
 
 def load_study(size: str, cache: Path | None, seed: int = 0,
-               test_photons: tuple[float, float] = (1e3, 1e4)) -> tuple:  # fmt: skip
-    """The validation data and their truth, from ``cache`` when it exists."""
+               test_photons: tuple[float, float] = (1e3, 1e4)):  # fmt: skip
+    """The validation data, from ``cache`` when it exists."""
     if cache is not None and cache.exists():
         with cache.open("rb") as f:
             return pickle.load(f)
     data = make_data(size, seed=seed, test_photons=test_photons)
-    truth = study_truth(data, roi_size=ROI)
     if cache is not None:
         with cache.open("wb") as f:
-            pickle.dump((data, truth), f)
-    return data, truth
+            pickle.dump(data, f)
+    return data
 
 
-def every_model(data, truth, shapes: list[str], size: str) -> str:
+def every_model(data, shapes: list[str], size: str) -> str:
     """Every shape x field model (and ``auto``) at a 15 px ROI, the IDW baseline, and the error
     budget of ``rho_w`` + ``auto``: the markdown text of the results file."""
     spots = localize_test(data, roi_size=ROI).assign(particle=lambda f: f["emitter"])
@@ -210,15 +209,15 @@ def every_model(data, truth, shapes: list[str], size: str) -> str:
             located = cal.apply(spots, amplitude_reference=reference)
             chosen = cal.field_model if kind == "auto" else ""
             if kind == "auto" and shape == "rho_w":
-                budget = error_budget(cal, data, truth, spots, size)
+                budget = error_budget(cal, data, spots, size)
             row = {"shape": shape, "field model": kind + (f" ({chosen})" if chosen else "")}
-            rows.append(row | summarise(score(data, located, truth, cal)))
+            rows.append(row | summarise(score(data, located)))
         base = calibrate_traces(first.traces, camera=data.camera, shape=shape,
                                 field_model="nearest", roi_size=ROI,
                                 field_shape=first.options["field_shape"])  # fmt: skip
         located = idw_baseline(base, spots)
         rows.append({"shape": shape, "field model": "IDW 4-nearest baseline"}
-                    | summarise(score(data, located, truth, base)))  # fmt: skip
+                    | summarise(score(data, located)))  # fmt: skip
     table = pd.DataFrame(rows)
     text = table.to_markdown(index=False, floatfmt=".3g")
     if "budget" in locals():
@@ -272,7 +271,7 @@ def curve_transfer(data, cal, spots: pd.DataFrame) -> str:
 
     from latentz.calibration.fieldmodels import field_weights
     from latentz.calibration.widefield import crossing
-    from latentz.validation.truth import bead_fits, emitter_fits
+    from latentz.validation.floor import bead_fits, emitter_fits
 
     if uses_amplitude(cal.shape):
         return "(skipped: an amplitude-normalised shape)"
@@ -364,27 +363,20 @@ def defaults_study(data, size: str, cache: Path | None) -> tuple[str, dict[str, 
     """
     cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
     roi = cal.roi_size
-    truth_cache = None if cache is None else cache.with_name(f"{cache.name}.truth_roi{roi}")
-    if truth_cache is not None and truth_cache.exists():
-        truth = pd.read_pickle(truth_cache)
-    else:
-        truth = study_truth(data, roi_size=roi)
-        if truth_cache is not None:
-            pd.to_pickle(truth, truth_cache)
     spots = localize_test(data, calibration=cal)
     near = calibrate_traces(cal.traces, camera=data.camera, shape=cal.shape,
                             field_model="nearest", roi_size=roi,
                             field_shape=cal.options["field_shape"])  # fmt: skip
     clean = noise_free_spots(data, size, roi_size=roi)
     models = {
-        f"defaults: {cal.field_model}": (cal, cal.apply),
-        "nearest": (near, near.apply),
-        "IDW 4-nearest baseline": (near, lambda frame: idw_baseline(near, frame)),
+        f"defaults: {cal.field_model}": cal.apply,
+        "nearest": near.apply,
+        "IDW 4-nearest baseline": lambda frame: idw_baseline(near, frame),
     }
     rows = []
-    for name, (model, apply) in models.items():
-        row = {"field model": name} | summarise(score(data, apply(spots), truth, model))
-        row["z noise-free"] = summarise(score(data, apply(clean), truth, model))["z"]
+    for name, apply in models.items():
+        row = {"field model": name} | summarise(score(data, apply(spots)))
+        row["z noise-free"] = summarise(score(data, apply(clean)))["z"]
         rows.append(row)
     table = pd.DataFrame(rows)
     table.insert(3, "z / nearest", table["z"] / table.loc[1, "z"])
@@ -425,7 +417,7 @@ def main() -> None:
         parser.error(f"--test-photons: expected LO,HI with 0 < LO <= HI, got {args.test_photons!r}")
     warnings.simplefilter("ignore", UserWarning)
     start = time.perf_counter()
-    data, truth = load_study(args.size, args.cache, test_photons=test_photons)
+    data = load_study(args.size, args.cache, test_photons=test_photons)
     made = time.perf_counter() - start
     if args.defaults:
         text, chosen = defaults_study(data, args.size, args.cache)
@@ -437,7 +429,7 @@ def main() -> None:
             + (".\n\n" + text)
         )
     else:
-        text = every_model(data, truth, args.shapes.split(","), args.size)
+        text = every_model(data, args.shapes.split(","), args.size)
     print(text)
     OUT.mkdir(exist_ok=True)
     header = (

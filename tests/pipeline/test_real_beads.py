@@ -20,7 +20,7 @@ from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, need, score_z, smlm_
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
-from latentz.calibration.roi import roi_for_width, widest_spot_px
+from latentz.calibration.roi import CORE_TOLERANCE
 from latentz.calibration.workflow import NOISE_WARNING_SCALE
 
 pytestmark = pytest.mark.realdata
@@ -75,18 +75,25 @@ def test_smlm_beads_calibrate_with_defaults():
     cal = lz.calibrate(stack, z, camera=lz.Camera(**SMLM_CAMERA))
     assert len(cal.kept) == 6
     assert cal.shape == "auto" and "auto" in cal.shape_choice["reason"]
-    # the ROI holds the widest spot on the usable planes: 95 % of its photons, not a px more
-    assert cal.roi_size == roi_for_width(widest_spot_px(cal))
+    # the ROI is the recorded choice, and its expected z error near focus is within the
+    # tolerance of the best candidate's
+    choice = cal.options["roi_choice"]
+    assert cal.roi_size == choice["chosen"]
+    best = min(row["core_nm"] for row in choice["candidates"].values())
+    assert choice["candidates"][str(cal.roi_size)]["core_nm"] <= (1 + CORE_TOLERANCE) * best
     # the usable range stops before the ring images below focus (−600..−400 nm)
     assert np.all(cal.usable_z_nm[cal.kept, 0] > -400)
 
 
-def test_fit3d_crop_shrinks_the_roi_with_one_line():
+def test_fit3d_crop_bounds_the_roi_by_the_images():
+    # a 15 px crop allows ROIs up to 13 px (a spot's centre needs a pixel of margin): every
+    # candidate stays within that, and the choice is recorded with its reason
     stack, z = fit3d_bead()
-    with pytest.warns(UserWarning, match="calibration images allow 13 px") as record:
-        cal = lz.calibrate(stack[1::2, CROP[0], CROP[1]], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
-    assert cal.roi_size == 13
-    assert sum("ROI" in str(w.message) for w in record) == 1
+    cal = lz.calibrate(stack[1::2, CROP[0], CROP[1]], z[1::2], camera=lz.Camera(**FIT3D_CAMERA))
+    choice = cal.options["roi_choice"]
+    assert cal.roi_size == choice["chosen"] <= 13
+    assert all(int(r) <= 13 for r in choice["candidates"])
+    assert f"roi_size={cal.roi_size}" in cal.options["roi_size_reason"]
 
 
 @pytest.mark.slow

@@ -1,5 +1,5 @@
-"""The ROI criterion of `calibrate(roi_size=None)`: the smallest odd ROI that holds 95 % of the
-widest kept spot's photons, checked by summing rendered Gaussians pixel by pixel."""
+"""The smallest candidate ROI of `calibrate(roi_size=None)`: the smallest odd ROI that holds 95 %
+of an in-focus spot's photons, checked by summing rendered Gaussians pixel by pixel."""
 
 import numpy as np
 import pytest

@@ -37,13 +37,12 @@ def _tolerance(n: int) -> float:
 @pytest.fixture(scope="module")
 def validation_errors():
     from latentz.validation import make_data
-    from latentz.validation.truth import localize_test, score, study_truth
+    from latentz.validation.truth import localize_test, score
 
     data = make_data("small", seed=1, n_frames=16)
-    truth = study_truth(data, roi_size=ROI)
     cal = lz.calibrate(data.stacks, data.z_nm, camera=data.camera, shape="rho_w", roi_size=ROI,
                        field_model="zernike")  # fmt: skip
-    errors = score(data, cal.apply(localize_test(data, roi_size=ROI)), truth, cal)
+    errors = score(data, cal.apply(localize_test(data, roi_size=ROI)))
     return errors[errors["in_range"]]
 
 

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
+from latentz.calibration.dimming import background_ratio
 from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measured_noise
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
@@ -502,7 +503,7 @@ class Calibration:
         starts there, and its start moves back to the particle's own ratio c as the spot's c
         goes as far again (in log c) beyond the edge, so that dim emitters get the whole shift
         from their particle's own fit (:mod:`~latentz.calibration.dimming` notes)."""
-        from latentz.calibration.dimming import background_ratio, dimmest, shape_shift
+        from latentz.calibration.dimming import dimmest, shape_shift
 
         readnoise = self.camera.readnoise
         at = _row_weights(self.local.z_nm, p, z)
@@ -529,6 +530,28 @@ class Calibration:
                 c_from = np.clip(edge**2 / c_spot, c_own, edge)
         shift = shape_shift(shape_of, trace_at, c_spot, c_own, c_from=c_from)
         return np.where(np.isfinite(shift), shift, 0.0)
+
+    def _transfer_sigma(self, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
+        """1σ (nm) of the dimming correction carried from the nearest particle to spots at
+        ``z`` of background ratio ``c_spot``, measured on held-out particles
+        (:func:`~latentz.calibration.dim_crossval.transfer_sigma`): linear in z between its
+        bins and in log c between its levels, held at the ends; 0 where unknown."""
+        from latentz.calibration.dim_crossval import transfer_sigma
+
+        if "transfer_sigma" not in self._cache:
+            self._cache["transfer_sigma"] = transfer_sigma(self)
+        centres, log_c, sigma = self._cache["transfer_sigma"]
+        if centres.size == 0:
+            return np.zeros(np.shape(z))
+        zq = np.where(np.isfinite(z), z, centres[0])
+        by_level = np.array([np.interp(zq, centres, row) for row in sigma])  # (levels, spots)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.log(np.asarray(c_spot, dtype=np.float64))
+        x = np.clip(np.where(np.isfinite(x), x, log_c[0]), log_c[0], log_c[-1])
+        j = np.clip(np.searchsorted(log_c, x), 1, log_c.size - 1)
+        t = (x - log_c[j - 1]) / (log_c[j] - log_c[j - 1])
+        spots = np.arange(x.size)
+        return (1 - t) * by_level[j - 1, spots] + t * by_level[j, spots]
 
     @property
     def reference_field(self) -> ReferenceField:
@@ -625,6 +648,10 @@ class Calibration:
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
         z_err = combine(z_err, self._field_sigma("z", z, distance))
+        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
+                                      self.camera.readnoise)  # fmt: skip
+            z_err = combine(z_err, self._transfer_sigma(z, c_spot))
         out["z_err_nm"] = np.where(in_range, z_err, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p

@@ -1,35 +1,94 @@
-"""The ROI size from the data: the smallest odd square that holds the most defocused kept spot.
+"""The ROI size from the data: the candidate whose calibration localizes typical emitters best.
 
-Criterion: a square ROI of ``roi`` pixels centred on a Gaussian spot of width ``w`` (standard
-deviation, pixels) reaches ``h = roi / 2`` from the centre each way and holds
-``erf(h / (w √2))²`` of its photons. The ROI holds the kept spot of the
-largest width ``w_max`` (``wx`` or ``wy``, over the kept particles' planes inside the calibrated
-range) when ``h ≥ k w_max`` with ``erf(k / √2)² = PHOTON_FRACTION``, so that at most 5 % of the
-widest spot's light falls outside, in its faint tails.
+A larger ROI holds more of a defocused spot, so it measures farther from focus; it also holds
+more background, more of a neighbour's light and more of a defocused ring, whose fitted width
+then depends on the ring's structure rather than on z, so near focus it can cost precision.
+No rule on the spots' own fitted widths settles this (the width of a ring grows with the ROI it
+is fitted in, and such a rule runs away). The ROI is therefore chosen by what it is for:
+
+1. **Candidates** (:func:`candidate_rois`): the smallest odd ROI that holds 95 % of an
+   in-focus spot (:func:`roi_for_width` of the particles' narrowest width), then every
+   :data:`ROI_STEP` pixels, :data:`N_CANDIDATES` in all (so the ROI cannot run away from the
+   in-focus spot), none larger than the images allow (:func:`roi_limit`) nor than the
+   particles' spacing (:func:`spacing_limit`: at most a quarter of them with a neighbour
+   inside their ROI).
+2. **Score** (:func:`expected_errors`): each candidate is calibrated with each particle's own
+   models, and on every plane of the stack the expected z error of typical emitters is taken
+   over its kept particles: for emitters of 10³ and of 10⁴ photons, that of the particle's own
+   image made into such an emitter over the images' background (:func:`frame_background`: a
+   bright particle's fitted background holds its own halo in a small ROI, a dim emitter's
+   does not), fitted as ``localize`` fits and localized by ``apply`` at the nearest other
+   particle (:func:`~latentz.calibration.roi_emitters.emitter_errors`); for emitters like the
+   calibration particles, the cross-validated error of the bright image (each particle's
+   images localized with the nearest *other* particle's inverse model, as
+   :mod:`~latentz.calibration.shape_choice` does). Where a particle's plane is outside its
+   usable range (:attr:`~latentz.calibration.Calibration.usable_planes`) it is not counted; an
+   emitter not localized in range, and any error above a guess anywhere in the stack
+   (span/√12), counts as a guess.
+3. **Choice** (:func:`choose_roi`): ``core_nm`` is the RMS of those errors over the *core*
+   planes (where every candidate measures: at least half its kept particles usable, and some
+   kind of emitter localized to better than half a guess; near focus); ``range_nm`` the same
+   over every plane any candidate measures; each has a standard error over the particles
+   (over the planes for a lone particle). A candidate is *as good as* the best when it
+   exceeds it by no more than their noise (the standard errors in quadrature) or
+   :data:`CORE_TOLERANCE`, whichever is larger. The candidates as good as the best near focus
+   are eligible, and the smallest of them as good as the best of them over the range is
+   chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
+   nothing near focus, and a shorter usable z range is preferred to lost precision near
+   focus. A candidate whose calibration fails is skipped, so the choice never fails where a
+   smaller ROI works.
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.special import erfinv
 
+from latentz.calibration.roi_emitters import emitter_errors
+from latentz.calibration.shape import uses_amplitude
+from latentz.calibration.shape_choice import _cross_validated
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
+    from latentz.calibration.traces import Traces
+    from latentz.camera import Camera
+
 __all__ = [
-    "PHOTON_FRACTION",
+    "CORE_TOLERANCE",
+    "EMITTER_PHOTONS",
     "HALF_WIDTH_PER_SIGMA",
     "MIN_ROI",
+    "N_CANDIDATES",
+    "PHOTON_FRACTION",
+    "ROI_STEP",
+    "candidate_rois",
+    "choose_roi",
+    "expected_errors",
+    "focus_width_px",
+    "frame_background",
     "roi_for_width",
     "roi_limit",
-    "widest_spot_px",
+    "spacing_limit",
 ]
 
-#: Fraction of the widest kept spot's photons the ROI must hold.
+#: Fraction of an in-focus spot's photons the smallest candidate holds.
 PHOTON_FRACTION = 0.95
-#: k in ``h ≥ k w_max``: ``erf(k / √2)² = PHOTON_FRACTION`` (about 2.24).
+#: k in ``h ≥ k w``: ``erf(k / √2)² = PHOTON_FRACTION`` (about 2.24).
 HALF_WIDTH_PER_SIGMA = float(math.sqrt(2.0) * erfinv(math.sqrt(PHOTON_FRACTION)))
 #: The smallest ROI a 7-parameter Gaussian fit is given (pixels).
 MIN_ROI = 7
+#: Pixels between candidate ROIs, and how many there are at most.
+ROI_STEP = 4
+N_CANDIDATES = 3
+#: Most fraction of the particles allowed a neighbour inside their ROI (:func:`spacing_limit`).
+CROWDED_FRACTION = 0.25
+#: Photon counts of the typical single emitters the ROI is judged for.
+EMITTER_PHOTONS = (1e3, 1e4)
+#: A candidate whose near-focus error is within this fraction of the best is eligible.
+CORE_TOLERANCE = 0.05
 
 
 def roi_limit(image_shape: tuple[int, int]) -> int:
@@ -41,16 +100,176 @@ def roi_limit(image_shape: tuple[int, int]) -> int:
 
 def roi_for_width(width_px: float) -> int:
     """Smallest odd ROI side (pixels, at least :data:`MIN_ROI`) that reaches
-    ``HALF_WIDTH_PER_SIGMA`` spot widths ``width_px`` (pixels) from its centre each way."""
+    ``HALF_WIDTH_PER_SIGMA`` spot widths ``width_px`` (pixels) from its centre each way, so that
+    it holds :data:`PHOTON_FRACTION` of a Gaussian spot's photons."""
     if not np.isfinite(width_px) or width_px <= 0:
         raise ValueError(f"Expected a finite, positive spot width, got {width_px!r} px.")
     return max(MIN_ROI, 2 * math.ceil(HALF_WIDTH_PER_SIGMA * width_px - 0.5) + 1)
 
 
-def widest_spot_px(cal) -> float:
-    """Largest fitted width (``wx`` or ``wy``, pixels) of the kept particles over their usable
-    planes (:attr:`~latentz.calibration.Calibration.usable_planes`); NaN if there is none."""
-    kept = cal.kept
-    widths = np.fmax(cal.traces["wx"][kept], cal.traces["wy"][kept])
-    widths = np.where(cal.usable_planes[kept], widths, np.nan)
-    return float(np.nanmax(widths)) if np.isfinite(widths).any() else np.nan
+def focus_width_px(traces: Traces) -> float:
+    """Median over the particles of their narrowest converged spot, as the geometric mean
+    ``sqrt(wx wy)`` (pixels; astigmatism widens one axis where the other is narrowest); NaN
+    if no fit converged."""
+    width = np.sqrt(np.abs(traces["wx"] * traces["wy"]))
+    width = np.where(traces["converged"] & np.isfinite(width), width, np.nan)
+    finite = np.isfinite(width).any(axis=1)
+    return float(np.median(np.nanmin(width[finite], axis=1))) if finite.any() else np.nan
+
+
+def spacing_limit(traces: Traces) -> int:
+    """Largest odd ROI (pixels) at which at most :data:`CROWDED_FRACTION` of the particles have
+    a neighbour of their own stack inside it (the traces' ``crowded`` rule: a neighbour within
+    ``roi // 2`` px on both axes); a very large number for a lone particle."""
+    pos, stack = traces.position(), traces.stack
+    gaps = np.full(len(pos), np.inf)
+    for s in np.unique(stack):
+        own = np.flatnonzero(stack == s)
+        if own.size < 2:
+            continue
+        gap = np.abs(pos[own, None, :] - pos[None, own, :]).max(axis=2)
+        np.fill_diagonal(gap, np.inf)
+        gaps[own] = gap.min(axis=1)
+    gap = float(np.quantile(gaps, CROWDED_FRACTION))
+    if not np.isfinite(gap):
+        return 1 << 20
+    half = math.ceil(gap) - 1  # roi // 2 < gap
+    return 2 * max(half, MIN_ROI // 2) + 1
+
+
+def candidate_rois(width_px: float, upper: int) -> list[int]:
+    """The odd ROI sizes to try (pixels): from :func:`roi_for_width` of the in-focus width
+    ``width_px`` every :data:`ROI_STEP` px, :data:`N_CANDIDATES` at most, none above ``upper``
+    (at least the first, capped at ``upper``)."""
+    first = roi_for_width(width_px) if np.isfinite(width_px) and width_px > 0 else 15
+    first = min(first, upper)
+    return [r for r in range(first, first + ROI_STEP * N_CANDIDATES, ROI_STEP) if r <= upper]
+
+
+def frame_background(stacks: list[np.ndarray], camera: Camera) -> np.ndarray:
+    """(n_stacks, n_z) background (photons per pixel) of each plane of each stack: the median
+    pixel of the plane in photons, which sparse particles leave to the background."""
+    return np.array([camera.to_photons(np.median(stack, axis=(1, 2))[:, None, None])[:, 0, 0]
+                     for stack in stacks])  # fmt: skip
+
+
+def expected_errors(
+    cal: Calibration, stacks: list[np.ndarray], camera: Camera, background: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Expected z error (nm) of typical emitters on every plane of ``cal``'s stack (module
+    notes, step 2), from the calibration ``stacks`` (ADU) read by ``camera`` and their
+    ``background`` ((n_stacks, n_z) photons per pixel, :func:`frame_background`): ``errors``
+    (n_kinds, n_z), one row per photon count of :data:`EMITTER_PHOTONS` and a last for emitters
+    like the calibration particles, RMS over the kept particles; ``particle_sq`` (n_kinds,
+    n_kept, n_z) each kept particle's capped squared error (NaN where unmeasured), for the
+    standard errors of :func:`choose_roi`; ``measured`` (n_z,) the fraction of them whose
+    plane is usable; ``guess_nm`` the error of a guess; ``usable_nm`` the median over the kept
+    particles of their usable range's ends (tilt-corrected z)."""
+    local, shape, kept = cal.local, cal.shape, cal.kept
+    use = np.zeros(cal.culled.size, bool)
+    use[kept] = True
+    use &= local.shapes[shape].inverse.valid
+    cv = _cross_validated(local, shape, use, cal.positions, reference=uses_amplitude(shape))
+    z = cal.traces.z_nm
+    guess = float(np.ptp(z)) / np.sqrt(12.0)
+    usable = ~np.isnan(cv)
+    kinds = [np.where(usable, emitter_errors(cal, stacks, camera, background, photons), np.nan)
+             for photons in EMITTER_PHOTONS]  # fmt: skip
+    kinds.append(np.abs(cv))
+    errors, squares = [], []
+    for error in kinds:
+        measured = ~np.isnan(error[kept])  # inf: not localized, a guess
+        capped = np.where(measured, np.minimum(np.abs(error[kept]), guess), 0.0)
+        count = measured.sum(axis=0)
+        rms = np.sqrt(np.sum(capped**2, axis=0) / np.maximum(count, 1))
+        errors.append(np.where(count > 0, rms, guess))  # none measured: a guess
+        squares.append(np.where(measured, capped**2, np.nan))
+    usable_nm = np.nanmedian(cal.usable_z_nm[kept], axis=0) if kept.size else [np.nan] * 2
+    return {
+        "errors": np.array(errors),
+        "particle_sq": np.array(squares),
+        "measured": usable[kept].mean(axis=0) if kept.size else np.zeros(z.size),
+        "guess_nm": guess,
+        "usable_nm": np.asarray(usable_nm, dtype=np.float64),
+    }
+
+
+def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    """The ROI to calibrate with, from :func:`expected_errors` of each candidate that
+    calibrated (module notes, step 3), and a JSON-able record of why: ``chosen``, a one-line
+    ``reason`` and each candidate's ``core_nm`` and ``range_nm`` with their standard errors
+    (``core_se_nm``, ``range_se_nm``), ``usable_nm`` and ``kept``."""
+    rois = sorted(scores)
+    measured = np.array([_measures(scores[r]) for r in rois])
+    core = np.all(measured, axis=0)
+    if not core.any():  # no plane every candidate measures: judge on each one's own
+        core = np.any(measured, axis=0)
+    union = np.any(measured, axis=0)
+    table = {}
+    for r in rois:
+        table[r] = {"usable_nm": [float(v) for v in scores[r]["usable_nm"]],
+                    "kept": int(scores[r].get("kept", 0))}  # fmt: skip
+        for name, planes in (("core", core), ("range", union)):
+            value, se = _rms_over(scores[r], planes)
+            table[r] |= {f"{name}_nm": value, f"{name}_se_nm": se}
+    eligible = _as_good(table, rois, "core") or rois  # none measures: judged on range and size
+    chosen = min(_as_good(table, eligible, "range") or eligible)
+    row = table[chosen]
+    lo, hi = row["usable_nm"]
+    reason = (
+        f"roi_size={chosen}: the smallest with the best expected z error of 1e3-1e4-photon "
+        f"emitters and of particles like the calibration's among ROIs "
+        f"{', '.join(map(str, rois))} px ({row['core_nm']:.0f} nm near focus, "
+        f"{row['range_nm']:.0f} nm over the stack; usable z {lo:.0f} to {hi:.0f} nm)"
+    )
+    return chosen, {
+        "chosen": chosen,
+        "reason": reason,
+        "candidates": {str(r): t for r, t in table.items()},
+    }
+
+
+def _measures(score: dict[str, Any]) -> np.ndarray:
+    """(n_z,) the planes where a candidate measures: at least half its kept particles usable,
+    and some kind of emitter localized to better than half a guess."""
+    best = np.min(score["errors"], axis=0)
+    return (score["measured"] >= 0.5) & (best < score["guess_nm"] / 2)
+
+
+def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
+    """RMS (nm) of one candidate's errors over ``planes`` (a guess's where it measures fewer
+    than half its particles), and its standard error over the particles (delta method on
+    each particle's mean square; over the planes for a lone particle; 0 without
+    ``particle_sq``)."""
+    if not planes.any():
+        return np.inf, 0.0
+    own = score["measured"] >= 0.5
+    errors = np.where(own, score["errors"], score["guess_nm"])
+    value = float(np.sqrt(np.mean(errors[:, planes] ** 2)))
+    squares = score.get("particle_sq")
+    if squares is None or squares.shape[1] == 0:
+        return value, 0.0
+    squares = np.where(own, squares, score["guess_nm"] ** 2)[:, :, planes]
+    samples = np.nanmean(np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1), axis=1)
+    if np.isfinite(samples).sum() < 2:  # a lone particle: its planes' noise draws instead
+        samples = np.nanmean(squares, axis=(0, 1))
+    samples = samples[np.isfinite(samples)]
+    if samples.size < 2:
+        return value, 0.0
+    se_square = float(np.std(samples, ddof=1) / np.sqrt(samples.size))
+    return value, se_square / (2 * value) if value > 0 else 0.0
+
+
+def _as_good(table: dict[int, dict[str, Any]], rois: list[int], name: str) -> list[int]:
+    """The ``rois`` whose ``{name}_nm`` exceeds the best by no more than their noise (the two
+    standard errors in quadrature) or :data:`CORE_TOLERANCE` of the best, whichever is larger."""
+    finite = [r for r in rois if np.isfinite(table[r][f"{name}_nm"])]
+    if not finite:
+        return []
+    best = min(finite, key=lambda r: table[r][f"{name}_nm"])
+    value, se = table[best][f"{name}_nm"], table[best][f"{name}_se_nm"]
+    return [
+        r for r in finite
+        if table[r][f"{name}_nm"] - value
+        <= max(CORE_TOLERANCE * value, math.hypot(se, table[r][f"{name}_se_nm"]))
+    ]  # fmt: skip

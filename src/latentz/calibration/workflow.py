@@ -26,7 +26,16 @@ from latentz.calibration.depth import depth_ratio_per_nm
 from latentz.calibration.heights import particle_heights
 from latentz.calibration.local import LocalModels, LocalOptions, fit_local
 from latentz.calibration.result import FIELD_CHOICES, PAPER_SHAPES, Calibration
-from latentz.calibration.roi import MIN_ROI, roi_for_width, roi_limit, widest_spot_px
+from latentz.calibration.roi import (
+    MIN_ROI,
+    candidate_rois,
+    choose_roi,
+    expected_errors,
+    focus_width_px,
+    frame_background,
+    roi_limit,
+    spacing_limit,
+)
 from latentz.calibration.shape import SHAPES, astigmatism_angle
 from latentz.calibration.shape_choice import choose, score_shapes
 from latentz.calibration.tilt import TiltPlane
@@ -35,9 +44,10 @@ from latentz.camera import Camera
 
 __all__ = ["calibrate", "calibrate_traces"]
 
-#: First ROI of an automatic choice (pixels), and the most calibrations it may take.
+#: First ROI of an automatic choice (pixels): its traces give the in-focus width and spacing;
+#: where it fails, ROIs this many pixels apart are tried (:func:`_probe_ladder`).
 _FIRST_ROI = 15
-_ROI_PASSES = 3
+_PROBE_STEP = 8
 #: Fewer kept particles than this cannot carry models across the field.
 _MIN_WIDEFIELD = 3
 #: Fewer usable particles than this make population statistics meaningless: only outright
@@ -117,10 +127,11 @@ def calibrate(
     progress : bool
         Show a progress bar.
     roi_size : int, optional
-        Side of the fixed ROI that follows each particle through focus, pixels. None picks the
-        smallest odd ROI that holds the most defocused kept spot
-        (:mod:`latentz.calibration.roi`), calibrating again until it holds; where the images are
-        too small for it, the largest that fits, with a warning.
+        Side of the fixed ROI that follows each particle through focus, pixels. None
+        calibrates at a few candidate sizes (from the in-focus spot's, bounded by the images
+        and the particles' spacing) and keeps the one with the best cross-validated z error of
+        typical emitters (:mod:`latentz.calibration.roi`); ``cal.options["roi_choice"]`` says
+        why, with each candidate's figures and usable z range.
     positions : sequence of array_like (k, 2), optional
         Explicit (x, y) pixel positions of the particles in each stack instead of detection,
         for example ``[[(10, 10)]]`` for a stack holding a single bead.
@@ -169,25 +180,29 @@ def calibrate(
     if roi_size is not None:
         roi_size = _check_roi_size(roi_size, loaded, limit, explicit=positions is not None)
 
-    def once(roi: int) -> Calibration:
-        """Traces of every particle in a ``roi``-pixel ROI, then the calibration from them."""
-        traces = extract_traces(
-            loaded,
-            z,
-            camera=camera,
-            roi_size=roi,
-            positions=positions,
-            stage_offsets_px=stage_offsets_px,
-            threshold=threshold,
-            method=method,
-            progress=progress,
-            device=device,
-        )
+    traces_at: dict[int, Traces] = {}
+
+    def once(roi: int, model: str = field_model) -> Calibration:
+        """Traces of every particle in a ``roi``-pixel ROI (fitted once per ROI), then the
+        calibration from them with field model ``model``."""
+        if roi not in traces_at:
+            traces_at[roi] = extract_traces(
+                loaded,
+                z,
+                camera=camera,
+                roi_size=roi,
+                positions=positions,
+                stage_offsets_px=stage_offsets_px,
+                threshold=threshold,
+                method=method,
+                progress=progress,
+                device=device,
+            )
         return calibrate_traces(
-            traces,
+            traces_at[roi],
             camera=camera,
             shape=shape,
-            field_model=field_model,
+            field_model=model,
             n_terms=n_terms,
             roi_size=roi,
             method=method,
@@ -199,7 +214,11 @@ def calibrate(
         cal, caught = run(roi_size)
         _say(caught)
         return cal
-    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit)
+    background = frame_background(loaded, camera)
+    judge = functools.partial(expected_errors, stacks=loaded, camera=camera, background=background)
+    candidate = functools.partial(_recorded, functools.partial(once, model="nearest"))
+    final = None if field_model == "nearest" else run
+    return _calibrate_roi(candidate, min(_FIRST_ROI, limit), limit, judge, final)
 
 
 def _load_stacks(stacks: Any, z: np.ndarray, camera: Camera) -> tuple[list[np.ndarray], np.ndarray]:
@@ -268,33 +287,59 @@ def _say(caught: list) -> None:
         warnings.warn(message.message, message.category, stacklevel=4)
 
 
-def _calibrate_roi(run, roi: int, limit: int) -> Calibration:
-    """Calibrate with the ROI the widest kept spot needs (:func:`roi_for_width`), starting from
-    ``roi`` pixels (at most :data:`_ROI_PASSES` calibrations: the usable planes, and so the
-    widest spot, move a little with the ROI), never above ``limit``; warn when the images are
-    too small for it."""
-    cal, caught = run(roi)
-    for _ in range(_ROI_PASSES - 1):
-        width = widest_spot_px(cal)
-        if not np.isfinite(width):
+def _calibrate_roi(run, first: int, limit: int, judge, final=None) -> Calibration:
+    """Calibrate at each candidate ROI with ``run`` (:func:`~latentz.calibration.roi.
+    candidate_rois`, from the in-focus width of a first calibration at ``first`` px, never
+    above ``limit`` nor the particles' spacing) and keep the one whose calibration localizes
+    typical emitters best (``judge``: :func:`~latentz.calibration.roi.expected_errors` of a
+    calibration; :func:`~latentz.calibration.roi.choose_roi`), calibrated again by ``final``
+    where given (the requested field model; the candidates use each particle's own models);
+    ``cal.options["roi_choice"]`` says why. A candidate that fails is skipped; only when every
+    one fails is its error raised."""
+    runs: dict[int, tuple[Calibration, list]] = {}
+    failures: dict[int, tuple[Exception, list]] = {}
+
+    def attempt(roi: int) -> None:
+        with warnings.catch_warnings(record=True) as said:  # a skipped ROI's are not said
+            warnings.simplefilter("always")
+            try:
+                runs[roi] = run(roi)
+            except ValueError as exc:
+                failures[roi] = (exc, said)
+
+    for roi in _probe_ladder(first, limit):  # the first ROI that calibrates
+        attempt(roi)
+        if roi in runs:
+            probe = runs[roi][0].traces
             break
-        wanted = min(roi_for_width(width), limit)
-        if wanted == roi:
-            break
-        roi = wanted
-        cal, caught = run(roi)
+    else:
+        exc, said = failures[first]
+        _say(said)
+        raise exc
+    upper = min(limit, spacing_limit(probe))
+    for roi in candidate_rois(focus_width_px(probe), upper):
+        if roi not in runs and roi not in failures:
+            attempt(roi)
+    scored = {r: run_ for r, run_ in runs.items() if r <= upper} or runs
+    scores = {
+        r: {**judge(cal), "kept": cal.kept.size}
+        for r, (cal, _) in scored.items()
+    }
+    chosen, record = choose_roi(scores)
+    record["failed"] = {str(r): str(e) for r, (e, _) in failures.items()}
+    cal, caught = runs[chosen] if final is None else final(chosen)
     _say(caught)
-    width = widest_spot_px(cal)
-    if np.isfinite(width):
-        cal.options["roi_size_reason"] = (
-            f"chosen from the data: 95 % of the light of the widest kept spot ({width:.2g} px)"
-        )
-    if np.isfinite(width) and roi_for_width(width) > limit:
-        warn(
-            f"The widest kept spot ({width:.2g} px) needs a {roi_for_width(width)} px ROI but "
-            f"the calibration images allow {limit} px: calibrated with {roi} px."
-        )
+    cal.options["roi_choice"] = record
+    cal.options["roi_size_reason"] = record["reason"]
     return cal
+
+
+def _probe_ladder(first: int, limit: int) -> list[int]:
+    """ROIs to try, in order, until one calibrates: ``first``, the smallest, then up to four
+    larger ones :data:`_PROBE_STEP` px apart, none above ``limit`` (spots that outgrow
+    ``first`` through most of the stack fail their fits there)."""
+    larger = range(first + _PROBE_STEP, min(limit, first + 4 * _PROBE_STEP) + 1, _PROBE_STEP)
+    return list(dict.fromkeys([first, MIN_ROI, *larger]))
 
 
 def calibrate_traces(

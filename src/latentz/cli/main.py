@@ -192,7 +192,7 @@ def _progress(quiet: bool) -> bool:
     "--roi-size",
     type=int,
     default=None,
-    help="ROI side, pixels (odd). [default: the smallest that holds the widest kept spot]",
+    help="ROI side, pixels (odd). [default: the candidate with the best cross-validated z error]",
 )
 @click.option(
     "--field-model",

@@ -24,7 +24,8 @@ from latentz.camera import Camera
 from latentz.validation.fields import AberrationFields
 from latentz.validation.microscope import Microscope, bead_slices
 
-__all__ = ["SIZES", "ValidationData", "make_data", "render_patches", "emitter_images"]
+__all__ = ["SIZES", "ValidationData", "emitter_images", "make_data", "render_patches",
+           "simulate_study"]  # fmt: skip
 
 #: The study sizes: "full" is issue 12's microscope, "small" runs in seconds for the tests.
 SIZES = {
@@ -202,33 +203,72 @@ def make_data(
     if camera is None:
         camera = Camera(offset=100.0, gain=0.5, readnoise=1.5,
                         pixel_size_nm=microscope.pixel_size_nm)  # fmt: skip
-    z = np.arange(-p["z_half_nm"], p["z_half_nm"] + p["z_step_nm"] / 2, p["z_step_nm"])
-    size_px = p["patch_px"]
-    stacks, clean, rows = [], [], []
-    for k in range(p["n_stacks"]):
-        shift = 0.25 + 0.5 * k / max(p["n_stacks"] - 1, 1)
-        points = _grid(p["grid"], n, shift, 0.1, rng)
+    return simulate_study(p, microscope, fields, camera, rng, background=background,
+                          bead_nm=bead_nm, test_photons=test_photons)  # fmt: skip
+
+
+def _calibration_stacks(layout: dict, microscope: Microscope, fields: AberrationFields,
+                        camera: Camera, z: np.ndarray, background: float, bead_nm: float,
+                        rng) -> tuple[list, list, pd.DataFrame]:  # fmt: skip
+    """Calibration stacks (ADU), the same without noise (photons), and their truth table."""
+    n, stacks, clean, rows = layout["field_px"], [], [], []
+    for k in range(layout["n_stacks"]):
+        shift = 0.25 + 0.5 * k / max(layout["n_stacks"] - 1, 1)
+        points = _grid(layout["grid"], n, shift, 0.1, rng)
         expected = np.full((z.size, n, n), float(background))
         for x, y in points:
             height = float(fields.substrate_nm(x, y))
             defocus = height + z - fields.focal_surface_nm(x, y)
-            patch = render_patches(microscope, fields, x, y, defocus, size_px, bead_nm=bead_nm)
-            _add(expected, p["photons"] * patch, x, y)
-            rows.append((len(rows), k, x, y, p["photons"], height))
+            patch = render_patches(microscope, fields, x, y, defocus, layout["patch_px"],
+                                   bead_nm=bead_nm)  # fmt: skip
+            _add(expected, layout["photons"] * patch, x, y)
+            rows.append((len(rows), k, x, y, layout["photons"], height))
         stacks.append(_to_adu(expected, camera, rng))
         clean.append(expected)
-    cal_truth = pd.DataFrame(rows, columns=["particle", "stack", "x", "y", "photons",
-                                            "substrate_nm"])  # fmt: skip
-    points = _grid(p["grid"], n, 0.5, 0.12, rng)
-    points = points[rng.choice(len(points), min(p["n_test"], len(points)), replace=False)]
+    truth = pd.DataFrame(rows, columns=["particle", "stack", "x", "y", "photons",
+                                        "substrate_nm"])  # fmt: skip
+    return stacks, clean, truth
+
+
+def _test_places(layout: dict, calibration: pd.DataFrame, rng) -> np.ndarray:
+    """(n_test, 2) places of the test emitters: a jittered grid of their own, none within 3 px
+    of a calibration particle (test emitters are never copies of calibration particles)."""
+    side = layout.get("test_grid", layout["grid"])
+    points = _grid(side, layout["field_px"], 0.5, 0.12, rng)
+    gap = points[:, None, :] - calibration[["x", "y"]].to_numpy()[None]
+    points = points[np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) > 3.0]
+    return points[rng.choice(len(points), min(layout["n_test"], len(points)), replace=False)]
+
+
+def simulate_study(
+    layout: dict,
+    microscope: Microscope,
+    fields: AberrationFields,
+    camera: Camera,
+    rng: np.random.Generator,
+    *,
+    background: float,
+    bead_nm: float,
+    test_photons: tuple[float, float],
+) -> ValidationData:
+    """Calibration stacks and test frames of one study laid out as a :data:`SIZES` entry
+    (optionally with ``test_grid``, the side of the test emitters' grid)."""
+    z = np.arange(-layout["z_half_nm"], layout["z_half_nm"] + layout["z_step_nm"] / 2,
+                  layout["z_step_nm"])  # fmt: skip
+    stacks, clean, cal_truth = _calibration_stacks(layout, microscope, fields, camera, z,
+                                                   background, bead_nm, rng)  # fmt: skip
+    points = _test_places(layout, cal_truth, rng)
     lo, hi = np.log(test_photons[0]), np.log(test_photons[1])
     photons = np.exp(rng.uniform(lo, hi, len(points)))
-    defocus = rng.uniform(-p["test_half_nm"], p["test_half_nm"], (len(points), p["n_frames"]))
+    half, n_frames = layout["test_half_nm"], layout["n_frames"]
+    defocus = rng.uniform(-half, half, (len(points), n_frames))
     test_rows = [(e, f, x, y, photons[e], defocus[e, f])
-                 for e, (x, y) in enumerate(points) for f in range(p["n_frames"])]  # fmt: skip
+                 for e, (x, y) in enumerate(points) for f in range(n_frames)]  # fmt: skip
     test_truth = pd.DataFrame(test_rows, columns=["emitter", "frame", "x", "y", "photons",
                                                   "defocus_nm"])  # fmt: skip
-    expected = emitter_images(microscope, fields, test_truth, (n, n), background, size_px)
+    n = layout["field_px"]
+    expected = emitter_images(microscope, fields, test_truth, (n, n), background,
+                              layout["patch_px"])  # fmt: skip
     return ValidationData(
         microscope=microscope,
         fields=fields,

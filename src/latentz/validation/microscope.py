@@ -19,9 +19,25 @@ The amplitude in the image of a point emitter at lateral offset (x, y) and defoc
 
 with (u_k, v_k) = ρ_k NA/λ (cos φ_k, sin φ_k) and w_k the quadrature weights of the disk of radius
 NA/λ, so that ∫|E|² = π (NA/λ)² for an unaberrated pupil (Parseval) and ``|E|² / (π (NA/λ)²)``
-integrates to one photon. A bead is the incoherent sum over its volume: three axial slices
-(Gauss quadrature for the sphere's cross-section area, weight 1 − t²); its lateral extent is
-neglected (a 100 nm bead against a 710 nm Airy radius).
+integrates to one photon. At high NA two more factors enter (both optional, both off for the
+low-NA microscope of :func:`latentz.validation.make_data`):
+
+- ``apodize``: the aplanatic objective's amplitude factor ``cos(θ)^(-1/2)`` for the emission
+  collected at angle θ in the medium (sin θ = NA ρ / n), from the sine condition and energy
+  conservation;
+- ``vectorial``: the emitter is an isotropic (freely rotating) dipole, and the image is the
+  incoherent sum over the dipole along x, y, z and over the x and y polarisations of the
+  field in the pupil, each a pupil factor (the dipole's far field projected on the pupil's
+  radial and azimuthal unit vectors and brought to the image side):
+
+      E_x = (cos θ cos² φ + sin² φ) μ_x + (cos θ − 1) sin φ cos φ μ_y − sin θ cos φ μ_z
+      E_y = (cos θ − 1) sin φ cos φ μ_x + (cos θ sin² φ + cos² φ) μ_y − sin θ sin φ μ_z
+
+Intensities are normalised by the pupil's total power ``Σ_k w_k |P_k|²`` (Parseval), which is
+π (NA/λ)² for the plain scalar pupil. A bead is the incoherent sum over its volume: three
+axial slices (Gauss quadrature for the sphere's cross-section area, weight 1 − t²); its lateral
+extent is neglected (a 100 nm bead against a 710 nm Airy radius; the random family draws beads
+up to 200 nm, where a real bead's image would be slightly wider than this one's).
 """
 
 from __future__ import annotations
@@ -68,6 +84,10 @@ class Microscope:
         Pupil quadrature: Gauss–Legendre nodes in ρ, uniform nodes in φ.
     subsamples : int
         Sample points per pixel along each axis for pixel integration.
+    apodize : bool
+        Apply the aplanatic amplitude factor cos(θ)^(-1/2) (module notes).
+    vectorial : bool
+        Image an isotropic dipole with the vectorial pupil factors (module notes).
     """
 
     na: float = 0.55
@@ -77,6 +97,8 @@ class Microscope:
     radial_nodes: int = 20
     azimuth_nodes: int = 40
     subsamples: int = 3
+    apodize: bool = False
+    vectorial: bool = False
 
     @cached_property
     def _nodes(self) -> dict[str, np.ndarray]:
@@ -95,6 +117,26 @@ class Microscope:
             "axial": np.sqrt(self.n_medium**2 - (self.na * rr) ** 2),
         }
 
+    @cached_property
+    def _factors(self) -> np.ndarray:
+        """(c, K) real pupil factors of the c incoherent components (module notes)."""
+        nodes = self._nodes
+        cos_t = nodes["axial"] / self.n_medium
+        apodization = cos_t**-0.5 if self.apodize else np.ones_like(cos_t)
+        if not self.vectorial:
+            return apodization[None, :]
+        sin_t = self.na * nodes["rho"] / self.n_medium
+        cp, sp = np.cos(nodes["phi"]), np.sin(nodes["phi"])
+        mixed = (cos_t - 1) * sp * cp
+        factors = [cos_t * cp**2 + sp**2, mixed, -sin_t * cp,  # E_x for mu_x, mu_y, mu_z
+                   mixed, cos_t * sp**2 + cp**2, -sin_t * sp]  # E_y  # fmt: skip
+        return np.array(factors) * apodization / np.sqrt(3.0)
+
+    @cached_property
+    def pupil_power(self) -> float:
+        """``Σ_c Σ_k w_k |P_ck|²``, the integral of the image intensity over the plane (nm⁻²)."""
+        return float(np.sum(self._nodes["weight"] * self._factors**2))
+
     @property
     def pupil_area(self) -> float:
         """π (NA/λ)², the integral of |E|² for a unit pupil (nm⁻²)."""
@@ -112,21 +154,40 @@ class Microscope:
         return wave
 
     def amplitude(
-        self, x_nm: np.ndarray, y_nm: np.ndarray, wavefront_nm: np.ndarray, defocus_nm: np.ndarray
+        self,
+        x_nm: np.ndarray,
+        y_nm: np.ndarray,
+        wavefront_nm: np.ndarray,
+        defocus_nm: np.ndarray,
+        *,
+        factor: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Complex amplitude E on the grid ``y_nm × x_nm`` for each defocus: (m, ny, nx).
+        """Complex amplitude E on the grid ``y_nm × x_nm`` for each defocus: (m, ny, nx), with the
+        pupil multiplied by ``factor`` (K,) (default none).
 
-        ``|E|² / pupil_area`` is the intensity per nm² of one photon.
+        ``|E|² / pupil_area`` is the intensity per nm² of one photon for the plain scalar pupil.
         """
         nodes = self._nodes
         k = 2 * np.pi / self.wavelength_nm
         defocus = np.atleast_1d(np.asarray(defocus_nm, dtype=np.float64))
         phase = k * (wavefront_nm[None, :] + defocus[:, None] * nodes["axial"][None, :])
-        pupil = (nodes["weight"] * np.exp(1j * phase)).astype(np.complex64)  # (m, K)
+        weight = nodes["weight"] if factor is None else nodes["weight"] * factor
+        pupil = (weight * np.exp(1j * phase)).astype(np.complex64)  # (m, K)
         along_y = np.exp(2j * np.pi * np.outer(y_nm, nodes["v"])).astype(np.complex64)
         along_x = np.exp(2j * np.pi * np.outer(nodes["u"], x_nm)).astype(np.complex64)
         left = (pupil[:, None, :] * along_y[None]).reshape(-1, nodes["u"].size)
         return (left @ along_x).reshape(defocus.size, len(y_nm), len(x_nm))
+
+    def intensity(
+        self, x_nm: np.ndarray, y_nm: np.ndarray, wavefront_nm: np.ndarray, defocus_nm: np.ndarray
+    ) -> np.ndarray:
+        """Intensity per nm² of one photon on the grid ``y_nm × x_nm``: (m, ny, nx), the
+        incoherent sum over the pupil's components (module notes)."""
+        total = 0.0
+        for factor in self._factors:
+            field = self.amplitude(x_nm, y_nm, wavefront_nm, defocus_nm, factor=factor)
+            total = total + (field.real**2 + field.imag**2)
+        return total / self.pupil_power
 
     def pixel_image(
         self,
@@ -148,8 +209,7 @@ class Microscope:
         offsets = (np.arange(size * q) + 0.5) / q - 0.5 - half  # sample points, pixels
         x_nm = (offsets - dx_px) * self.pixel_size_nm
         y_nm = (offsets - dy_px) * self.pixel_size_nm
-        field = self.amplitude(x_nm, y_nm, wavefront_nm, defocus_nm)
-        intensity = (field.real**2 + field.imag**2) / self.pupil_area
+        intensity = self.intensity(x_nm, y_nm, wavefront_nm, defocus_nm)
         pixels = intensity.reshape(-1, size, q, size, q).mean(axis=(2, 4))
         pixels = pixels * self.pixel_size_nm**2
         if weights is None:

@@ -1,0 +1,127 @@
+"""Held-out z error of a dim emitter imaged like a calibration particle.
+
+A single molecule of 10³–10⁴ photons is not measured like a 10⁵-photon bead: its Gaussian fit
+is biased by the background (:mod:`~latentz.calibration.dimming`), and
+:meth:`~latentz.calibration.Calibration.apply` removes that bias with the refits of the
+calibration particle nearest the spot. How well that transfers between particles depends on
+the ROI (a large ROI holds more of the defocused ring, whose bias changes across the field), and
+the bright particles' own cross-validation cannot see it.
+
+So each kept particle is held out and its image at every plane is seen as an emitter of
+``photons`` photons over the particle's own background: its shape value is the particle's own
+refit at that emitter's background ratio c (:func:`~latentz.calibration.dimming.shape_shift`
+from its own traces), the nearest *other* kept particle's refits at the same z correct it as
+``apply`` does, and that particle's inverse model gives z. The error (nm) is that z minus the
+plane's (tilt-corrected) z: field, dimming transfer and the particles' own heights together;
+the fit's precision is not in it (the refits are of the bright image).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from latentz.calibration.dimming import DIM_COLUMNS, background_ratio, shape_shift
+from latentz.calibration.shape import shape_value
+from latentz.fit._model import amplitude_of
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
+
+__all__ = ["TRANSFER_BIN_NM", "dim_held_out", "transfer_sigma"]
+
+#: Width of the z bins in which :func:`transfer_sigma` pools the held-out errors, nm.
+TRANSFER_BIN_NM = 250.0
+#: Fewest held-out planes a bin of :func:`transfer_sigma` needs.
+_MIN_PER_BIN = 30
+
+
+def dim_held_out(
+    cal: Calibration, photons: float | None = None, *, ratio: float | None = None
+) -> np.ndarray:
+    """(n, n_z) z error (nm) of an emitter of ``photons`` photons (or of background ratio
+    ``ratio`` = (b + readnoise²) / A) imaged like each kept particle at each plane, localized
+    with its nearest other kept particle's refits and inverse model (module notes); NaN for
+    culled particles and where the model does not cover it."""
+    local, traces, shape = cal.local, cal.traces, cal.shape
+    model = local.shapes[shape]
+    n, n_z = model.values.shape
+    errors = np.full((n, n_z), np.nan)
+    rows = cal.kept[model.inverse.valid[cal.kept]]
+    if rows.size < 2:
+        return errors
+    _, nearest = cKDTree(cal.positions[rows]).query(cal.positions[rows], k=2)
+    i = np.repeat(rows, n_z)
+    k = np.tile(np.arange(n_z), rows.size)
+    p = np.repeat(rows[nearest[:, 1]], n_z)
+    z = local.z_nm[i, k]
+    readnoise = cal.camera.readnoise
+    ref = model.amplitude_ref
+
+    def shape_of(owner: np.ndarray):
+        def of(a, wx, wy, rho):
+            return shape_value(shape, wx, wy, rho, a, theta=local.theta,
+                               amplitude_ref=ref[owner])  # fmt: skip
+        return of
+
+    def own(name: str) -> np.ndarray:
+        return traces[name][i, k]
+
+    def neighbour(name: str) -> np.ndarray:
+        """The nearest other particle's trace at each held-out plane's z (end values held)."""
+        values = [np.interp(local.z_nm[a], local.z_nm[b], traces[name][b])
+                  for a, b in zip(rows, rows[nearest[:, 1]], strict=True)]  # fmt: skip
+        return np.concatenate(values)
+
+    if ratio is None:
+        amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))
+        c_spot = background_ratio(own("background"), amplitude, readnoise)
+    else:
+        c_spot = np.full(i.size, float(ratio))
+    c_own = background_ratio(own("background"), own("amplitude"), readnoise)
+    c_near = background_ratio(neighbour("background"), neighbour("amplitude"), readnoise)
+    if not all(name in traces.data for name in DIM_COLUMNS):  # no refits: no correction
+        s = model.values[i, k]
+    else:
+        seen = model.values[i, k] + shape_shift(shape_of(i), own, c_spot, c_own)
+        correction = shape_shift(shape_of(p), neighbour, c_spot, c_near)
+        s = seen - np.where(np.isfinite(correction), correction, 0.0)
+    inverse = model.inverse[p]
+    inside = inverse.contains(s) & np.isfinite(s)
+    estimate = np.where(inside, inverse(np.where(inside, s, 0.0)), np.nan)
+    errors[i, k] = estimate - z
+    return errors
+
+
+def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How much the dimming correction errs when it is carried from the nearest particle to a
+    spot: ``(z_nm, log_c, sigma_nm)``, the RMS over the kept particles of the held-out error at
+    background ratio c (each of :data:`~latentz.calibration.dimming.LEVELS`) minus that of the
+    bright image itself (:func:`dim_held_out`), in z bins :data:`TRANSFER_BIN_NM` wide (bin
+    centres ``z_nm``; bins with fewer than 30 planes merged into the next) by ``log_c``;
+    ``sigma_nm`` (n_levels, n_bins). Empty where there are no refits."""
+    from latentz.calibration.dimming import LEVELS
+
+    if not all(name in cal.traces.data for name in DIM_COLUMNS):
+        return np.zeros(0), np.zeros(0), np.zeros((0, 0))
+    z = cal.local.z_nm
+    bright = dim_held_out(cal, ratio=0.0)  # below every particle's own ratio: no shift
+    differences = [dim_held_out(cal, ratio=c) - bright for c in LEVELS]
+    known = np.isfinite(bright) & np.all(np.isfinite(differences), axis=0)
+    if known.sum() < _MIN_PER_BIN:
+        return np.zeros(0), np.zeros(0), np.zeros((0, 0))
+    zz = z[known]
+    order = np.argsort(zz)
+    zz = zz[order]
+    edges = np.arange(zz[0], zz[-1] + TRANSFER_BIN_NM, TRANSFER_BIN_NM)
+    bins = np.searchsorted(edges, zz, side="right") - 1
+    centres, sigmas, group = [], [], np.zeros(zz.size, bool)
+    for b in np.unique(bins):
+        group |= bins == b
+        if group.sum() >= _MIN_PER_BIN or b == bins[-1]:
+            centres.append(float(np.mean(zz[group])))
+            sigmas.append([np.sqrt(np.mean(d[known][order][group] ** 2)) for d in differences])
+            group[:] = False
+    return np.array(centres), np.log(np.asarray(LEVELS)), np.array(sigmas).T

@@ -1,0 +1,62 @@
+"""One family member studied with latentz's defaults only: calibrate, localize, score, floor."""
+
+from __future__ import annotations
+
+import time
+
+import pandas as pd
+
+from latentz.validation.family import FAMILY_SIZES, draw_microscope, family_data
+from latentz.validation.floor import oracle_floor
+from latentz.validation.truth import localize_test, score, summary
+
+__all__ = ["common_spots", "run_defaults"]
+
+
+def run_defaults(seed: int, size: str = "full") -> dict:
+    """One row for draw ``seed`` at ``size``: its settings; what ``calibrate`` chose with no
+    shape, ROI or field model given (or ``fails``, the first line of its error); the spots
+    found and in range, z RMSE and its oracle floor (nm, over the spots in range in both),
+    their ratio, x and y RMSE and their floors (nm) and the 1σ coverage of each axis
+    (:func:`~latentz.validation.truth.summary`); seconds taken."""
+    from latentz.calibration import calibrate
+
+    start = time.perf_counter()
+    draw = draw_microscope(seed, size)
+    row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
+           "px nm": round(draw.pixel_size_nm), "λ nm": round(draw.wavelength_nm),
+           "form": draw.form, "astig nm": round(draw.astigmatism_nm),
+           "bead nm": round(draw.bead_nm), "z ± nm": round(draw.z_half_nm),
+           "step nm": draw.z_step_nm}  # fmt: skip
+    data = family_data(draw)
+    row["render s"] = round(time.perf_counter() - start)
+    try:
+        cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
+    except ValueError as err:
+        return row | {"fails": str(err).splitlines()[0][:160]}
+    row |= {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
+    spots = localize_test(data, calibration=cal)
+    scored = score(data, cal.apply(spots))
+    errors = summary(scored)
+    try:
+        floor = summary(common_spots(oracle_floor(data, cal, spots,
+                                                  patch_px=FAMILY_SIZES[size]["patch_px"]),
+                                     scored))  # fmt: skip
+    except ValueError as err:  # the floor's own calibration failed: no floor for this draw
+        floor = {f"rmse_{axis}": float("nan") for axis in "xyz"} | {"spots": 0.0}
+        row["floor fails"] = str(err).splitlines()[0][:160]
+    row |= {"spots": int(errors["spots"]), "in range": round(errors["in_range"], 2),
+            "z RMSE": errors["rmse_z"], "floor": floor["rmse_z"],
+            "ratio": errors["rmse_z"] / floor["rmse_z"], "floor spots": int(floor["spots"]),
+            "x RMSE": errors["rmse_x"], "y RMSE": errors["rmse_y"], "floor x": floor["rmse_x"],
+            "floor y": floor["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
+            "cov z": errors["cover_z"], "fails": ""}  # fmt: skip
+    row["total s"] = round(time.perf_counter() - start)
+    return row
+
+
+def common_spots(floor: pd.DataFrame, scored: pd.DataFrame) -> pd.DataFrame:
+    """The floor's rows restricted to the spots that the calibration under test put in range
+    (the floor's own in-range flag kept), so that both RMSEs are over the same spots."""
+    kept = scored.loc[scored["in_range"].to_numpy(bool), ["emitter", "frame"]]
+    return floor.merge(kept, on=["emitter", "frame"])

@@ -1,0 +1,154 @@
+"""The random family of validation microscopes: what is drawn, the truth, and defaults on it.
+
+The family's optics are tested in test_microscope.py; here the draws' spread, the pupil
+quadrature of the hardest draws, the geometric scoring, and (slow, about a minute) a small
+family of four draws calibrated with defaults only, held to the family's criteria per draw.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from latentz.validation import FAMILY_SIZES, FORMS, draw_microscope, family_data
+from latentz.validation.family import MEDIA
+from latentz.validation.truth import remove_planes, summary
+
+DRAWS = [draw_microscope(seed) for seed in range(300)]
+
+
+def test_draws_span_the_family():
+    na = np.array([d.na for d in DRAWS])
+    assert na.min() < 0.45 and na.max() > 1.45  # NA 0.4-1.49
+    for medium, (n, lo, hi) in MEDIA.items():
+        own = [d.na for d in DRAWS if d.medium == medium]
+        assert len(own) > 50 and lo <= min(own) and max(own) <= min(hi, n)
+    pixel = np.array([d.pixel_size_nm for d in DRAWS])
+    assert 65 <= pixel.min() < 70 and 155 < pixel.max() <= 160
+    assert {d.form for d in DRAWS} == set(FORMS)
+    # astigmatism from none to cylindrical-lens strength (focal lines ~1 µm apart)
+    separation = np.array([4 * np.sqrt(6) * d.n_medium * d.astigmatism_nm / d.na**2
+                           for d in DRAWS])  # fmt: skip
+    assert separation.min() < 20 and separation.max() > 950
+    beads = np.array([d.bead_nm for d in DRAWS])
+    assert np.mean(beads == 0) > 0.3 and beads.max() > 190
+    assert len({d.z_step_nm for d in DRAWS}) > 5 and len({round(d.z_half_nm) for d in DRAWS}) > 50
+    assert all(d.test_photons[1] == pytest.approx(10 * d.test_photons[0]) for d in DRAWS)
+
+
+@pytest.mark.parametrize("key", ["na", "pixel_size_nm"])
+def test_pupil_quadrature_has_converged_on_the_hardest_draws(key):
+    # the draw of highest NA or coarsest pixel (largest lateral and axial phase ramps), a defocused
+    # aberrated image at the patch's size: doubling the nodes moves no pixel by 1e-3 of the peak
+    draw = max(DRAWS[:60], key=lambda d: getattr(d, key))
+    patch = FAMILY_SIZES["full"]["patch_px"]
+    scope = draw.microscope(patch)
+    fine = replace(scope, radial_nodes=2 * scope.radial_nodes,
+                   azimuth_nodes=2 * scope.azimuth_nodes)  # fmt: skip
+    wave = {mode: c for mode, c in draw.mean_nm.items()}
+    z = [-draw.z_half_nm, 0.0, draw.z_half_nm]
+    a = scope.pixel_image(0.3, -0.2, scope.wavefront_nm(wave), z, patch)
+    b = fine.pixel_image(0.3, -0.2, fine.wavefront_nm(wave), z, patch)
+    assert np.abs(a - b).max() < 1e-3 * b.max()
+
+
+def test_scoring_removes_one_plane_per_axis_and_nothing_else():
+    rng = np.random.default_rng(0)
+    n = 4000
+    x, y = rng.uniform(0, 256, n), rng.uniform(0, 256, n)
+    sigma = rng.uniform(2.0, 30.0, (n, 3))
+    noise = rng.normal(size=(n, 3)) * sigma
+    plane = 40.0 + 0.3 * x - 0.2 * y
+    bump = 25.0 * np.exp(-((x - 128) ** 2 + (y - 128) ** 2) / (2 * 20.0**2))  # not a plane
+    columns = {f"err_{a}_nm": noise[:, i] + plane for i, a in enumerate("xyz")}
+    columns |= {f"{a}_err_nm": sigma[:, i] for i, a in enumerate("xyz")}
+    errors = pd.DataFrame({"x": x, "y": y, "in_range": True, **columns})
+    errors["err_z_nm"] += bump
+    got = summary(remove_planes(errors))
+    # the plane goes; the noise stays: 1σ covers 68.3 % within 3 binomial SE (0.7 % at n=4000)
+    for axis in "xy":
+        assert got[f"cover_{axis}"] == pytest.approx(0.683, abs=3 * np.sqrt(0.683 * 0.317 / n))
+        rms = np.sqrt(np.mean(noise[:, "xyz".index(axis)] ** 2))
+        assert got[f"rmse_{axis}"] == pytest.approx(rms, rel=0.01)
+    # the bump is not removed: z's RMS holds the bump's RMS (about its own mean) beside the noise
+    rest = bump - bump.mean()
+    expected = np.sqrt(np.mean(noise[:, 2] ** 2) + np.mean(rest**2))
+    assert got["rmse_z"] == pytest.approx(expected, rel=0.05)
+
+
+def test_family_data_refuses_an_unknown_size_before_work():
+    with pytest.raises(ValueError, match="size"):
+        family_data(DRAWS[0], "huge")
+    with pytest.raises(ValueError, match="size"):
+        draw_microscope(0, "huge")
+
+
+def test_a_size_holds_the_drawn_stack_to_its_bounds():
+    for seed in range(40):
+        draw = draw_microscope(seed, "ci")
+        (lo, hi), (step_lo, step_hi) = (FAMILY_SIZES["ci"][k] for k in ("z_half_nm", "z_step_nm"))
+        assert lo <= draw.z_half_nm <= hi and step_lo <= draw.z_step_nm <= step_hi
+        full = DRAWS[seed]
+        assert (draw.na, draw.form, draw.bead_nm) == (full.na, full.form, full.bead_nm)
+
+
+# A small family in CI: four draws at the "ci" size (72 x 72 px, 9 calibration particles in
+# each of two stacks through at most +-1 um, 24 test spots of 6 emitters), calibrated with
+# defaults only: every draw calibrates, and z RMSE <= 3x its oracle floor wherever the floor
+# itself calibrates. 1σ coverage of each axis lies in the 99 % binomial band of a correct error
+# model (68.3 % ± 2.58 SE; ±25 % at 24 spots), not the family's 50-85 %, which ~20 spots cannot
+# resolve. Measured figures: docs/validation-family.md.
+FAMILY_SEEDS = (0, 1, 2, 3)
+
+
+@pytest.fixture(scope="module")
+def ci_family():
+    from latentz.validation.study import run_defaults
+
+    return {seed: run_defaults(seed, "ci") for seed in FAMILY_SEEDS}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", FAMILY_SEEDS)
+def test_defaults_hold_on_a_small_random_family(seed, ci_family):
+    row = ci_family[seed]
+    print(row)
+    assert not row.get("fails"), f"draw {seed} does not calibrate: {row.get('fails')}"
+    assert row["spots"] >= 10
+    if not row.get("floor fails"):
+        assert row["z RMSE"] <= 3 * row["floor"]
+    band = 2.576 * np.sqrt(0.683 * 0.317 / row["spots"])
+    for axis in "xyz":
+        assert abs(row[f"cov {axis}"] - 0.683) <= band, f"{axis}: {row[f'cov {axis}']:.1%}"
+
+
+@pytest.mark.slow
+def test_the_oracle_floor_exists_on_most_of_the_small_family(ci_family):
+    assert sum(not row.get("floor fails") for row in ci_family.values()) >= 3
+
+
+@pytest.mark.slow
+def test_auto_field_model_never_loses_to_nearest_on_a_smooth_random_field():
+    """Draw 5 at the ci size is the first of the family's smooth random (non-polynomial) fields
+    whose calibration keeps the 12 particles a field model needs. Against geometric truth, the
+    model `auto` picks localizes the test spots no worse than `nearest` at the same ROI and
+    shape, within twice the relative standard error of an RMSE from n spots (1/sqrt(2n), 14 %
+    at 24), and it loses no held-out particle."""
+    from latentz.calibration import calibrate
+    from latentz.calibration.crossval import crossval_summary
+    from latentz.validation.truth import localize_test, score
+
+    draw = draw_microscope(5, "ci")
+    assert draw.form == "smooth"
+    data = family_data(draw)
+    auto = calibrate(data.stacks, data.z_nm, camera=data.camera)
+    assert auto.kept.size >= 12
+    nearest = calibrate(data.stacks, data.z_nm, camera=data.camera, roi_size=auto.roi_size,
+                        shape=auto.shape, field_model="nearest")  # fmt: skip
+    got = {name: summary(score(data, cal.apply(localize_test(data, calibration=cal))))
+           for name, cal in (("auto", auto), ("nearest", nearest))}  # fmt: skip
+    n = got["nearest"]["spots"]
+    assert got["auto"]["spots"] >= n
+    assert got["auto"]["rmse_z"] <= got["nearest"]["rmse_z"] * (1 + 2 / np.sqrt(2 * n))
+    assert crossval_summary(auto.crossval).loc[auto.field_model, "lost"] == 0
