@@ -44,6 +44,9 @@ def summary(errors: pd.DataFrame) -> list[dict]:
             row[f"{axis} RMS / CRLB"] = float(np.sqrt(np.mean(ratio**2)))
             row[f"{axis} robust / CRLB"] = float(1.4826 * np.median(np.abs(ratio)))
             row[f"{axis} CRLB nm"] = float(np.median(seen[f"{axis}_crlb_nm"]))
+            row[f"{axis} median σ / CRLB"] = float(
+                np.median(seen[f"{axis}_err_nm"] / seen[f"{axis}_crlb_nm"])
+            )
             row[f"{axis} 1σ covers"] = float(
                 np.mean(np.abs(seen[f"{axis}_nm"]) < seen[f"{axis}_err_nm"])
             )
