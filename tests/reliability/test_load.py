@@ -1,5 +1,6 @@
 """Load: `localize` on a movie with about 10x the usual emitter density (many overlaps) finishes,
-flags the overlaps it resolves, and keeps its memory within a small multiple of the movie."""
+flags the overlaps it detects, splits or flags those it cannot detect apart, and keeps its
+memory within a small multiple of the movie."""
 
 import tracemalloc
 
@@ -58,8 +59,10 @@ def dense():
 def test_dense_movie_finishes_with_most_spots_fitted(dense):
     frames, _, locs, _ = dense
     assert set(locs["frame"]) == set(range(N_FRAMES))
-    # merged pairs make fewer detections than spots, but most frames' spots are found
-    assert 0.6 * N_SPOTS * N_FRAMES < len(locs) <= N_SPOTS * N_FRAMES
+    # merged pairs make fewer detections than spots, but most frames' spots are found; a spot
+    # is at most one row that is not a duplicate
+    unique = len(locs) - locs["duplicate"].sum()
+    assert 0.6 * N_SPOTS * N_FRAMES < unique <= N_SPOTS * N_FRAMES
     assert locs["converged"].mean() > 0.9
     finite = locs[locs["converged"]]
     assert np.isfinite(finite[["x", "y", "amplitude", "wx", "wy"]].to_numpy()).all()
@@ -77,7 +80,14 @@ def test_memory_stays_within_a_small_multiple_of_the_movie(dense):
 def test_close_pair_is_every_detection_with_another_inside_its_roi(dense):
     frames, _, locs, _ = dense
     found = detect(frames, roi_size=ROI)
-    np.testing.assert_array_equal(found["close_pair"].to_numpy(), locs["close_pair"].to_numpy())
+    # every row carries its detection's flag: a two-emitter fit's two rows carry one detection's
+    single = (locs["pair"] < 0).to_numpy()
+    flagged = locs["close_pair"].to_numpy(bool)
+    per_frame = (
+        np.bincount(locs["frame"], single & flagged, N_FRAMES)
+        + np.bincount(locs["frame"], ~single & flagged, N_FRAMES) / 2
+    )
+    np.testing.assert_array_equal(per_frame, np.bincount(found["frame"], found["close_pair"]))
     for t in range(N_FRAMES):
         peaks = found.loc[found["frame"] == t, ["row", "col"]].to_numpy()
         distance = cdist(peaks, peaks, "chebyshev")
@@ -117,27 +127,52 @@ def test_every_resolved_overlap_is_flagged(dense):
     assert n_pairs > 0
 
 
-def test_unresolved_overlaps_are_one_emitter_at_the_pairs_centre(dense):
-    """Known limitation, bounded: two spots closer than ~2.8 sigma merge into one band-passed
-    peak, whose single detection is not flagged close_pair (without a calibration nothing says
-    how wide one emitter is). How wrong it may be: it is one emitter of both spots' photons at
-    their midpoint, not a position pulled anywhere else. Pairs with no third spot inside the
-    ROI; the midpoint within 0.05 px (Cramér–Rao of the merged fit ~0.006 px, measured at most
-    0.021 px), the photons 2.0x one spot's within 5 % (measured 1.99-2.04x)."""
+#: Spots this far apart (px) or more merge into one detection, but the two-emitter fit finds
+#: both: measured on isolated pairs of these spots (tests/fit/test_fit_pairs.py's geometry),
+#: its likelihood ratio's 5th percentile is 175 at 2.3 px (1.5 σ) against a limit of 60, and
+#: 46 is its median at 1.8 px. Closer pairs look like one wider spot.
+RESOLVED_PX = 2.3
+
+
+def merged_pairs(locs, truth, t):
+    """(frame rows, (a, b), separation px, nearest rows of a and b) for each pair of true
+    spots within 2.5 px (Chebyshev) of each other, with no third spot inside the ROI."""
+    frame = locs[locs["frame"] == t].reset_index(drop=True)
+    distance, nearest = cKDTree(frame[["x", "y"]].to_numpy(float)).query(truth[t])
+    spots = cKDTree(truth[t])
+    for a, b in spots.query_pairs(2.5, p=np.inf, output_type="ndarray"):
+        midpoint = (truth[t][a] + truth[t][b]) / 2
+        if len(spots.query_ball_point(midpoint, ROI, p=np.inf)) == 2:
+            separation = np.hypot(*(truth[t][a] - truth[t][b]))
+            yield frame, (a, b), separation, nearest[[a, b]]
+
+
+def test_overlaps_are_split_into_two_rows_or_flagged_unresolved(dense):
+    """Two spots that merge into one detection: resolved by the two-emitter fit into two rows
+    of one ``pair``, each near its own spot, or flagged ``unresolved``; only pairs closer than
+    RESOLVED_PX may be neither, and then the one row is one emitter of both spots' photons at
+    their midpoint (within 0.05 px: its Cramér–Rao bound is ~0.006 px; photons 2.0x one spot's
+    within 5 %), not a position pulled anywhere else."""
     frames, truth, locs, _ = dense
     one_spot = 2 * np.pi * SIGMA**2 * AMPLITUDE
-    n_merged = 0
+    counts = {"split": 0, "flagged": 0, "midpoint": 0}
     for t in range(N_FRAMES):
-        frame = locs[locs["frame"] == t].reset_index(drop=True)
-        distance, nearest = cKDTree(frame[["x", "y"]].to_numpy(float)).query(truth[t])
-        spots = cKDTree(truth[t])
-        for a, b in spots.query_pairs(2.5, p=np.inf, output_type="ndarray"):
-            midpoint = (truth[t][a] + truth[t][b]) / 2
-            alone = len(spots.query_ball_point(midpoint, ROI, p=np.inf)) == 2
-            if not (alone and nearest[a] == nearest[b] and distance[a] <= 2.5):
-                continue
-            fit = frame.loc[nearest[a]]
-            assert np.hypot(fit["x"] - midpoint[0], fit["y"] - midpoint[1]) <= 0.05, fit
-            assert fit["photons"] / one_spot == pytest.approx(2.0, rel=0.05), fit
-            n_merged += 1
-    assert n_merged >= 10  # the case this test is about occurs in this sample (13 here)
+        for frame, spots, separation, rows in merged_pairs(locs, truth, t):
+            fits = frame.loc[rows]
+            if rows[0] != rows[1] and fits["pair"].iloc[0] >= 0 and fits["pair"].nunique() == 1:
+                # each spot within 5 of its row's own standard errors (a normal error passes
+                # 5 σ once in 10^6)
+                error = fits[["x", "y"]].to_numpy() - truth[t][list(spots)]
+                assert np.all(np.abs(error) <= 5 * fits[["x_err", "y_err"]].to_numpy()), fits
+                counts["split"] += 1
+            elif fits["unresolved"].all():
+                counts["flagged"] += 1
+            else:
+                assert separation < RESOLVED_PX, (separation, fits)
+                fit = fits.iloc[0]
+                midpoint = truth[t][list(spots)].mean(axis=0)
+                assert np.hypot(fit["x"] - midpoint[0], fit["y"] - midpoint[1]) <= 0.05, fit
+                assert fit["photons"] / one_spot == pytest.approx(2.0, rel=0.05), fit
+                counts["midpoint"] += 1
+    # the cases this test is about occur in this sample (8 split, 5 closer than 2.3 px here)
+    assert counts["split"] >= 5 and sum(counts.values()) >= 10, counts

@@ -286,7 +286,7 @@ def _tracked_table(tracked: list[tuple[int, FitResult, np.ndarray, np.ndarray]])
     return result_table(
         fit, frame=frame, snr=np.full(len(frame), np.nan),
         edge=np.concatenate([e for _, _, e, _ in tracked]),
-        close_pair=np.concatenate([c for _, _, _, c in tracked]),
+        close_pair=np.concatenate([c for _, _, _, c in tracked]), pair=-1, merged=False,
     )  # fmt: skip
 
 

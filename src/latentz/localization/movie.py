@@ -35,6 +35,7 @@ from latentz.fit.api import (
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
+from latentz.localization.pairs import PAIR_COLUMNS, split_pairs
 from latentz.localization.quality import assess, check_calibration_fits
 
 if TYPE_CHECKING:
@@ -43,7 +44,7 @@ if TYPE_CHECKING:
 __all__ = ["localize", "check_camera_offset", "check_roi_fits", "LOCALIZE_COLUMNS"]
 
 #: Columns of one chunk's detections and fits, in order.
-_CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair")
+_CHUNK_COLUMNS = ("frame", *FIT_COLUMNS, "snr", "edge", "close_pair", *PAIR_COLUMNS)
 #: Columns of the table returned by `localize` without a calibration, in order.
 LOCALIZE_COLUMNS = (*_CHUNK_COLUMNS, "duplicate", "unresolved", "good")
 _LOCAL_SCHEDULERS = ("threads", "processes", "synchronous")
@@ -90,9 +91,12 @@ def _localize_chunk(
     method: str,
     sigma: float,
     device: str = "cpu",
+    calibration: Calibration | None = None,
+    pairs: bool = False,
 ) -> pd.DataFrame:
     """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"); ``x, y`` in
-    full-frame pixels."""
+    full-frame pixels. With ``pairs``, close pairs are fitted as two emitters
+    (:mod:`latentz.localization.pairs`, what one emitter looks like from ``calibration``)."""
     block = np.asarray(block)
     if device == "cuda":
         from latentz.detect._cuda import detect_arrays_cuda
@@ -139,10 +143,15 @@ def _localize_chunk(
     params = fit.params.copy()
     params[:, 0] += col0
     params[:, 1] += row0
-    return result_table(
+    table = result_table(
         fit._replace(params=params), frame=first_frame + found.frame, snr=found.snr, edge=edge,
         close_pair=found.close_pair,
     )  # fmt: skip
+    if not pairs:
+        return table.assign(pair=-1, merged=False)
+    table.attrs["roi_size"] = roi_size
+    return split_pairs(table, np.asarray(rois, np.float64), np.column_stack([col0, row0]),
+                       readnoise=readnoise, calibration=calibration)  # fmt: skip
 
 
 def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
@@ -163,9 +172,9 @@ def _photons(block: np.ndarray, camera: Camera | None) -> np.ndarray:
 
 
 def _dtype(column: str) -> str:
-    if column in ("converged", "edge", "close_pair", "duplicate", "unresolved", "good"):
+    if column in ("converged", "edge", "close_pair", "merged", "duplicate", "unresolved", "good"):
         return "bool"
-    return "int64" if column in ("frame", "iterations") else "float64"
+    return "int64" if column in ("frame", "iterations", "pair") else "float64"
 
 
 def _scheduler_and_width(scheduler: Any) -> tuple[Any, int, Any]:
@@ -188,6 +197,16 @@ def _scheduler_and_width(scheduler: Any) -> tuple[Any, int, Any]:
         "Expected `scheduler` to be None, 'threads', 'processes', 'synchronous', a "
         f"dask.distributed address or Client, got {type(scheduler).__name__}."
     )
+
+
+def _number_pairs(table: pd.DataFrame) -> np.ndarray:
+    """The ``pair`` column numbered 0, 1, ... over the table (each chunk numbers its own)."""
+    pair = table["pair"].to_numpy(np.int64)
+    paired = pair >= 0
+    number = np.full(len(pair), -1, np.int64)
+    keys = table["frame"].to_numpy(np.int64)[paired] * (int(pair.max(initial=0)) + 1)
+    number[paired] = pd.factorize(keys + pair[paired])[0]
+    return number
 
 
 def _chunks(n_frames: int, chunk_frames: int) -> Iterator[tuple[int, int]]:
@@ -293,6 +312,7 @@ def localize(
     track: bool = False,
     detect_every: int = 20,
     device: str = "auto",
+    pairs: bool = True,
 ) -> pd.DataFrame:
     """Detect and fit every emitter in a movie; with a calibration, localize it in 3D.
 
@@ -338,6 +358,10 @@ def localize(
         ``snr`` is NaN on rows fitted from a prediction.
     detect_every : int
         Frames between full detections in tracking mode.
+    pairs : bool
+        Fit two emitters where one fit is shaped beyond one emitter and a second emitter is
+        significant (:mod:`latentz.localization.pairs`); both are reported, with the same
+        ``pair`` number. Not in tracking mode.
 
     Returns
     -------
@@ -345,8 +369,10 @@ def localize(
         `LOCALIZE_COLUMNS`: ``frame``, every column of :func:`latentz.fit.fit_rois` with ``x, y``
         in full-frame pixels (pixel ``[i, j]`` centred at ``x = j, y = i``), ``snr`` (detection
         score in noise units), ``edge`` (the ROI reaches past the frame's edge: it is clipped to
-        the frame, and its pixels outside are left out of the fit) and
-        ``close_pair`` (another detection lies inside this ROI); with a calibration, the
+        the frame, and its pixels outside are left out of the fit), ``close_pair`` (another
+        detection lies inside this ROI), ``pair`` (the number shared by the two rows of a
+        two-emitter fit, −1 otherwise) and ``merged`` (shaped beyond one emitter, not split);
+        with a calibration, the
         columns of :meth:`~latentz.calibration.Calibration.apply` too. Then the quality verdict
         of :func:`latentz.localization.quality.assess`: ``good`` and the flags that explain it
         (nothing is
@@ -363,7 +389,7 @@ def localize(
     chunk_frames = _chunk_frames(chunk_frames, device, movie.shape, movie.dtype.itemsize)
     _check_frames(movie.shape, camera, roi_size, calibration)
     options = (camera, roi_size, threshold, method, sigma, device)
-    if track:
+    if track:  # a tracked emitter is one bead or fiducial: no pairs
         detect_every = check_int("detect_every", detect_every, minimum=1)
         source = open_movie(frames) if isinstance(frames, str | os.PathLike) else movie
         table = localize_tracked(
@@ -373,7 +399,10 @@ def localize(
             detect_every=detect_every, progress=progress,
         )  # fmt: skip
     else:
-        table = _localize_chunks(frames, movie, chunk_frames, options, scheduler, progress)
+        table = _localize_chunks(
+            frames, movie, chunk_frames, (*options, calibration, bool(pairs)), scheduler, progress
+        )
+        table["pair"] = _number_pairs(table)
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))

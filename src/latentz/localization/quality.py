@@ -7,7 +7,10 @@ Nothing else decides quality; `localize` calls :func:`assess` and `track`/the re
 - is not a ``duplicate``: detections whose fits converge within :data:`DUPLICATE_PX` of each
   other in the same frame are one emitter; the fit with the smallest position error is kept;
 - is not ``unresolved``: no other emitter's fitted centre lies within :data:`UNRESOLVED_PX`
-  of it (in x and in y), where its light biases the fit beyond the challenge's tolerance;
+  of it (in x and in y), where its light biases the fit beyond the challenge's tolerance (the
+  two emitters of one two-emitter fit, the same ``pair``, were fitted together and do not
+  count), and it is not ``merged``: an overlap the two-emitter fit could not resolve
+  (:mod:`latentz.localization.pairs`);
 
 and, with a calibration,
 
@@ -92,7 +95,8 @@ MISMATCH_MEDIAN_CHI2 = 6.0
 
 
 def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
-    """(duplicate, unresolved) flags, frame by frame."""
+    """(duplicate, unresolved) flags, frame by frame; the rows of one two-emitter fit (the same
+    ``pair`` number) are not each other's neighbours, and ``merged`` rows are unresolved."""
     n = len(spots)
     duplicate, unresolved = np.zeros(n, bool), np.zeros(n, bool)
     x, y = spots["x"].to_numpy(float), spots["y"].to_numpy(float)
@@ -100,6 +104,8 @@ def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
     error = np.hypot(spots["x_err"].to_numpy(float), spots["y_err"].to_numpy(float))
     error = np.where(np.isfinite(error), error, np.inf)
     frames = spots["frame"].to_numpy()
+    pair = spots["pair"].to_numpy(np.int64) if "pair" in spots else np.full(n, -1)
+    merged = spots["merged"].to_numpy(bool) if "merged" in spots else np.zeros(n, bool)
     order = np.lexsort((error, frames))  # within a frame, the most precise fit first
     bounds = np.flatnonzero(np.diff(frames[order])) + 1
     for rows in np.split(order, bounds):
@@ -113,9 +119,11 @@ def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
                 duplicate[rows[j]] = True
         unique = rows[~duplicate[rows]]
         points = np.column_stack([x[unique], y[unique]])
-        pairs = cKDTree(points).query_pairs(UNRESOLVED_PX, p=np.inf, output_type="ndarray")
-        unresolved[unique[pairs.ravel()]] = True
-    return duplicate, unresolved
+        pairs = unique[cKDTree(points).query_pairs(UNRESOLVED_PX, p=np.inf, output_type="ndarray")]
+        # the two emitters of one two-emitter fit were fitted together: neither biases the other
+        partners = (pair[pairs[:, 0]] >= 0) & (pair[pairs[:, 0]] == pair[pairs[:, 1]])
+        unresolved[pairs[~partners].ravel()] = True
+    return duplicate, unresolved | merged
 
 
 def _consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:

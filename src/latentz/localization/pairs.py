@@ -1,0 +1,216 @@
+"""Close pairs: where one emitter's fit is shaped beyond one emitter, fit two and keep both.
+
+Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
+that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
+freedom), away from the frame's edge, and shaped beyond what one emitter looks like is a
+candidate:
+
+- with a calibration, the calibration does not locate it or its widths and ρ lie far from the
+  curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
+- without one, its long-axis width exceeds that of the chunk's isolated fits (no other
+  detection in the ROI) by more than :data:`WIDTH_MADS` robust standard deviations (1.4826 MAD)
+  above their median: nothing else says how wide one emitter is.
+
+Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`. Its two emitters replace the
+one-emitter row when the second emitter is significant (:func:`latentz.fit.pairs.is_split`) and
+each looks like one emitter (located and consistent with the calibration, or no wider than
+that limit), unless either lies on another detection's fit (a neighbour detected by itself).
+Both rows carry the same ``pair`` number. A candidate that is not split stays one row: an overlap
+the two-emitter fit cannot resolve. Without a calibration it is marked ``merged``, which
+:func:`.quality.assess` flags ``unresolved``; with one, it is already ``out_of_range`` or
+``inconsistent``, the flags that made it a candidate (and that dim or distant single emitters
+carry too, so ``unresolved`` is not added). Only candidates are fitted twice, so ordinary spots
+cost nothing more.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from latentz.fit._model import PARAMS, photons_of
+from latentz.fit.api import ERROR_COLUMNS, FIT_COLUMNS
+from latentz.fit.pairs import PairFit, fit_pairs, is_split
+from latentz.localization.quality import DUPLICATE_PX, assess
+
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
+
+__all__ = ["split_pairs", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
+
+#: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
+PAIR_COLUMNS = ("pair", "merged")
+#: Without a calibration, a fit whose long-axis width lies this many robust standard deviations
+#: above the median of the chunk's isolated fits is wider than one emitter.
+WIDTH_MADS = 5.0
+#: A one-emitter fit whose Pearson chi-square exceeds its degrees of freedom (pixels − 7) by
+#: this many of its standard deviations fits poorly: only those can hold two emitters.
+CHI2_SDS = 3.0
+_FRAME_GAP = 1e4  # pixels between frames in `_points`
+
+
+def long_axis_width(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Standard deviation (pixels) along the long axis of eq. 1's ellipse."""
+    mean, half = (wx**2 + wy**2) / 2, (wx**2 - wy**2) / 2
+    return np.sqrt(mean + np.sqrt(half**2 + (rho * wx * wy) ** 2))
+
+
+def _width(table: pd.DataFrame) -> np.ndarray:
+    return long_axis_width(*(table[c].to_numpy(float) for c in ("wx", "wy", "rho")))
+
+
+def _width_limit(table: pd.DataFrame) -> float:
+    """Long-axis width (pixels) beyond one emitter's, from the table's isolated fits: their
+    median plus :data:`WIDTH_MADS` robust standard deviations (infinite with no such fit)."""
+    isolated = table["converged"].to_numpy(bool) & ~table["close_pair"].to_numpy(bool)
+    width = _width(table)[isolated]
+    width = width[np.isfinite(width)]
+    if width.size == 0:
+        return np.inf
+    median = float(np.median(width))
+    return median + WIDTH_MADS * 1.4826 * float(np.median(np.abs(width - median)))
+
+
+def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.DataFrame:
+    """``table``'s quality flags (:func:`.quality.assess`), after the calibration locates it."""
+    if calibration is None:
+        return assess(table)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # localize applies the calibration again, and warns there
+        return assess(calibration.apply(table), calibration)
+
+
+def _beyond(
+    table: pd.DataFrame, calibration: Calibration | None, limit: float, pixels: int
+) -> np.ndarray:
+    """Which rows, fitted in ROIs of ``pixels`` pixels, fit poorly and are shaped beyond one
+    emitter (see the module docstring); the calibration is applied to the poor fits only."""
+    finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
+    finite &= ~table["edge"].to_numpy(bool)  # a ROI at the frame's edge is not all frame
+    dof = pixels - len(PARAMS)
+    with np.errstate(invalid="ignore"):
+        poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
+    if calibration is None:
+        with np.errstate(invalid="ignore"):
+            return poor & (_width(table) > limit)
+    beyond = np.zeros(len(table), bool)
+    if poor.any():
+        flags = _one_emitter(table[poor], calibration)
+        beyond[poor] = (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+    return beyond
+
+
+def _look_like_one(
+    members: pd.DataFrame, calibration: Calibration | None, limit: float
+) -> np.ndarray:
+    """Which member rows look like one emitter: located and consistent, or narrow enough."""
+    if calibration is None:
+        return _width(members) <= limit
+    flags = _one_emitter(members, calibration)
+    return ~(flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+
+
+def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.DataFrame:
+    """Two rows per row of ``rows`` (emitter 0 then 1), in full-frame pixels (ROI corners
+    ``corner``, (n, 2) as x, y), with the two-emitter fit's values and errors."""
+    n = len(rows)
+    members = rows.loc[rows.index.repeat(2)].reset_index(drop=True)
+    params = fit.params.reshape(2 * n, len(PARAMS)).copy()
+    params[:, :2] += np.repeat(corner, 2, axis=0)
+    for k, name in enumerate(PARAMS):
+        members[name] = params[:, k]
+    members["photons"] = photons_of(params[:, 2], params[:, 4], params[:, 5], params[:, 6])
+    errors = fit.errors.reshape(2 * n, len(PARAMS))
+    for k, name in enumerate(ERROR_COLUMNS):
+        members[name] = errors[:, k]
+    for name, values in (("loglik", fit.loglik), ("chi2", fit.chi2),
+                         ("iterations", fit.iterations), ("converged", fit.converged)):  # fmt: skip
+        members[name] = np.repeat(values, 2)
+    for name in FIT_COLUMNS[FIT_COLUMNS.index("converged") + 1 :]:
+        members[name] = np.nan  # not reported for the two-emitter model
+    return members
+
+
+def split_pairs(
+    table: pd.DataFrame,
+    rois: np.ndarray,
+    corner: np.ndarray,
+    *,
+    readnoise: float,
+    calibration: Calibration | None = None,
+) -> pd.DataFrame:
+    """One chunk's one-emitter rows with each resolved close pair as two rows.
+
+    Parameters
+    ----------
+    table : DataFrame
+        One row per ROI: ``frame``, the columns of :func:`latentz.fit.fit_rois` in full-frame
+        pixels, and any further columns (copied to both rows of a pair).
+    rois : ndarray (n, h, w)
+        The ROIs the rows were fitted in, photoelectrons.
+    corner : ndarray (n, 2)
+        Each ROI's first column and row in the frame (pixels).
+    readnoise : float
+        Read-noise standard deviation in photoelectrons.
+    calibration : Calibration, optional
+        Says what one emitter looks like; without it, the chunk's own fits do.
+
+    Returns
+    -------
+    DataFrame
+        ``table`` with `PAIR_COLUMNS`, rows ordered by frame (see the module docstring).
+    """
+    table = table.reset_index(drop=True).assign(pair=-1, merged=False)
+    limit = _width_limit(table)
+    candidates = np.flatnonzero(
+        _beyond(table, calibration, limit, rois[0].size if len(rois) else 0)
+    )
+    if candidates.size == 0:
+        return table
+    local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
+    local[:, :2] -= corner[candidates]
+    fit = fit_pairs(rois[candidates], local, readnoise=readnoise, errors="sandwich")
+    proposed = is_split(fit, rois.shape[1:])
+    # without a calibration the width is the evidence; with one, the flags that made a candidate
+    table.loc[candidates, "merged"] = calibration is None
+    members = _member_rows(table.loc[candidates[proposed]], _take(fit, proposed),
+                           corner[candidates[proposed]])  # fmt: skip
+    members["pair"] = np.repeat(candidates[proposed], 2)
+    members["merged"] = False
+    members.attrs = table.attrs
+    one = _look_like_one(members, calibration, limit)
+    detected = _detected_apart(table, members)
+    kept = one[0::2] & one[1::2] & ~detected
+    table.loc[candidates[proposed][detected], "merged"] = False
+    keep_rows = np.ones(len(table), bool)
+    keep_rows[candidates[proposed][kept]] = False
+    out = pd.concat([table[keep_rows], members[np.repeat(kept, 2)]], ignore_index=True)
+    return out.sort_values("frame", kind="stable", ignore_index=True)
+
+
+def _detected_apart(table: pd.DataFrame, members: pd.DataFrame) -> np.ndarray:
+    """For each pair of ``members`` (rows 2k, 2k + 1), whether either emitter is within
+    `DUPLICATE_PX` of another detection's fit in its frame (not the pair's own row
+    ``table.loc[pair]``): the ROI held a neighbour that was detected and fitted by itself."""
+    if len(members) == 0:
+        return np.zeros(0, bool)
+    distance, index = cKDTree(_points(table)).query(_points(members), k=2)
+    own = members["pair"].to_numpy()[:, None]
+    other = np.where(index[:, :1] == own, distance[:, 1:], distance[:, :1])[:, 0]
+    near = other < DUPLICATE_PX
+    return near[0::2] | near[1::2]
+
+
+def _points(rows: pd.DataFrame) -> np.ndarray:
+    """x, y (pixels) and the frame times `_FRAME_GAP`: rows of other frames never within
+    reach; a position that is not finite lies far from all."""
+    points = rows[["x", "y", "frame"]].to_numpy(float) * [1.0, 1.0, _FRAME_GAP]
+    return np.nan_to_num(points, nan=-1e12, posinf=-1e12, neginf=-1e12)
+
+
+def _take(fit: PairFit, rows: np.ndarray) -> PairFit:
+    return PairFit(*(field[rows] for field in fit))
