@@ -108,6 +108,8 @@ def _look_like_one(
     members: pd.DataFrame, calibration: Calibration | None, limit: float
 ) -> np.ndarray:
     """Which member rows look like one emitter: located and consistent, or narrow enough."""
+    if len(members) == 0:  # no candidate split: nothing to locate
+        return np.zeros(0, bool)
     if calibration is None:
         return _width(members) <= limit
     flags = _one_emitter(members, calibration)
