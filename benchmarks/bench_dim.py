@@ -17,12 +17,12 @@ Run: ``python benchmarks/bench_dim.py``.
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 import pandas as pd
 from _rounds import machine, write_results
+from bench_edges import microscope_parser
 from bench_verdicts import markdown
 
 from latentz.simulate.molecules import random_microscope
@@ -55,10 +55,7 @@ def summary(errors: pd.DataFrame) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--microscopes", type=int, default=6)
-    parser.add_argument("--seed", type=int, default=121, help="seed of the first microscope")
-    parser.add_argument("--frames", type=int, default=30)
+    parser = microscope_parser(__doc__, frames=30)
     parser.add_argument("--background", type=float, default=20.0)
     args = parser.parse_args()
     started, start = machine(), time.perf_counter()

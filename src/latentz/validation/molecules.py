@@ -115,15 +115,9 @@ def edge_errors(
     axis, the inner molecules' median error, removed: a point molecule is not the calibration's
     bead) with their reported 1σ (``*_err_nm``)."""
     molecules = place_edge_molecules(rng, n_frames=n_frames, frame_shape=frame_shape, **placement)
-    frames, truth = molecule_frames(
-        molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
-        seed=int(rng.integers(2**31)),
-    )  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the CPU note
-        locs = localize(frames, calibration=calibration)
-    row = nearest_rows(truth, locs, radius_px=2.0)
-    found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
+    truth, found, row = _localized_nearest(
+        molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=frame_shape
+    )
     cut_x = truth["across"].to_numpy() == 0
     inner = (truth["across"].to_numpy() == -1) & (row >= 0) & found["in_range"].to_numpy(bool)
     errors = {}
@@ -143,6 +137,30 @@ def edge_errors(
         z_err_nm=sigmas["z"],
     )
     return out
+
+
+def _localized_nearest(
+    molecules: pd.DataFrame,
+    microscope: Microscope,
+    calibration: Calibration,
+    rng: np.random.Generator,
+    *,
+    n_frames: int,
+    frame_shape: tuple[int, int],
+    background: float = 20.0,
+) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray]:
+    """The truth of ``molecules`` imaged by ``microscope``, localized with ``calibration`` and
+    defaults: (truth, the localization nearest each molecule, its position in the table or −1
+    where none lies within 2 px)."""
+    frames, truth = molecule_frames(
+        molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
+        background=background, seed=int(rng.integers(2**31)),
+    )  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the CPU note
+        locs = localize(frames, calibration=calibration)
+    row = nearest_rows(truth, locs, radius_px=2.0)
+    return truth, locs.iloc[np.maximum(row, 0)].reset_index(drop=True), row
 
 
 def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
@@ -182,15 +200,10 @@ def precision_against_bounds(
         rng, n_frames=n_frames, frame_shape=field_shape,
         pixel_nm=microscope.optics.pixel_size_nm, density_per_um2=density_per_um2, **placement,
     )  # fmt: skip
-    frames, truth = molecule_frames(
-        molecules, microscope, n_frames=n_frames, frame_shape=field_shape,
-        background=background, seed=int(rng.integers(2**31)),
+    truth, found, row = _localized_nearest(
+        molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=field_shape,
+        background=background,
     )  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the CPU note
-        locs = localize(frames, calibration=calibration)
-    row = nearest_rows(truth, locs, radius_px=2.0)
-    found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
     out = truth[["frame", "photons", "z_nm"]].rename(columns={"z_nm": "true_z_nm"})
     out = out.assign(
         isolated=_isolated(truth, isolation_px, field_shape),
