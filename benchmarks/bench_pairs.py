@@ -16,7 +16,8 @@ Per density and mode: rows, correct rows, recall (correct / molecules placed) an
 index of every row and of the ``good`` rows, lateral and axial RMSE of the correct ones, the
 pairs reported and how many of their rows are correct, the share of correct pair rows whose z
 lies within its reported 1σ, and the time of ``localize``. Then, on each microscope, molecules
-on a 20 px grid (no neighbour within 2 µm): how many are split, which no one should be. Writes
+on a 20 px grid (no neighbour within 2 µm): how many are split, which no one should be. Last,
+the speed of ``localize`` with and without on the frames of ``bench_localize.py``. Writes
 ``results/bench_pairs.md``.
 
 Run: ``python benchmarks/bench_pairs.py [--microscopes 4] [--frames 6]``.
@@ -31,6 +32,7 @@ import warnings
 import numpy as np
 import pandas as pd
 from _rounds import machine, write_results
+from bench_localize import spots_movie
 
 from latentz.localization import localize
 from latentz.simulate.molecules import molecule_frames, place_molecules, random_microscope
@@ -132,6 +134,27 @@ def summary(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def speed(n_frames: int = 20, rounds: int = 3) -> pd.DataFrame:
+    """Frames/s of ``localize`` with and without the two-emitter fit on the 2048 x 2048 frames
+    of ``bench_localize.py`` (30 and 500 Gaussian spots per frame), best of ``rounds``,
+    alternating the two so that the machine's load falls on both alike."""
+    rows = []
+    for per_frame in (30, 500):
+        frames = spots_movie(n_frames, per_frame)
+        localize(frames[:2])  # compile outside the measurement
+        best = {False: np.inf, True: np.inf}
+        for _ in range(rounds):
+            for pairs in (False, True):
+                start = time.perf_counter()
+                locs = localize(frames, pairs=pairs)
+                best[pairs] = min(best[pairs], time.perf_counter() - start)
+        rows.append({"spots per frame": per_frame, "frames": n_frames,
+                     "frames/s without": n_frames / best[False],
+                     "frames/s with": n_frames / best[True],
+                     "pairs split": int((locs["pair"] >= 0).sum() // 2)})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
 def markdown(table: pd.DataFrame) -> str:
     """A markdown table, numbers to 3 significant digits."""
     head = "| " + " | ".join(table.columns) + " |\n|" + "---|" * len(table.columns)
@@ -165,7 +188,9 @@ def main() -> None:
         f"Took {time.perf_counter() - start:.0f} s on a loaded machine (`localize s`: the time "
         "of localize over all microscopes)."
     )
-    table = markdown(summary(runs))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the CPU note
+        table = markdown(summary(runs)) + "\n\n" + markdown(speed())
     write_results("bench_pairs.md", "Close pairs against truth", started, notes, table)
     print(notes, table, sep="\n\n")
 

@@ -2,7 +2,8 @@
 
 Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
 that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
-freedom), away from the frame's edge, and shaped beyond what one emitter looks like is a
+freedom), away from the frame's edge, with no other emitter's fit in its ROI (fits within
+`DUPLICATE_PX` are the same emitter), and shaped beyond what one emitter looks like is a
 candidate:
 
 - with a calibration, the calibration does not locate it or its widths and ρ lie far from the
@@ -84,13 +85,26 @@ def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.Dat
         return assess(calibration.apply(table), calibration)
 
 
+def _crowded(table: pd.DataFrame, half: float) -> np.ndarray:
+    """Which rows have another fit within ``half`` px (x and y) that is not the same emitter
+    (more than `DUPLICATE_PX` away): a third emitter the two-emitter fit would not model."""
+    points = _points(table)
+    tree = cKDTree(points)
+    near = tree.query_ball_point(points, half, p=np.inf, return_length=True)
+    same = tree.query_ball_point(points, DUPLICATE_PX, return_length=True)
+    return near > same
+
+
 def _beyond(
-    table: pd.DataFrame, calibration: Calibration | None, limit: float, pixels: int
+    table: pd.DataFrame, calibration: Calibration | None, limit: float, shape: tuple[int, ...]
 ) -> np.ndarray:
-    """Which rows, fitted in ROIs of ``pixels`` pixels, fit poorly and are shaped beyond one
+    """Which rows, fitted in ROIs of ``shape`` pixels, fit poorly and are shaped beyond one
     emitter (see the module docstring); the calibration is applied to the poor fits only."""
+    half = (min(shape) - 1) / 2
+    pixels = int(np.prod(shape))
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    finite &= ~table["edge"].to_numpy(bool)  # a ROI at the frame's edge is not all frame
+    # a ROI at the frame's edge is not all frame
+    finite &= ~table["edge"].to_numpy(bool) & ~_crowded(table, half)
     dof = pixels - len(PARAMS)
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
@@ -108,8 +122,6 @@ def _look_like_one(
     members: pd.DataFrame, calibration: Calibration | None, limit: float
 ) -> np.ndarray:
     """Which member rows look like one emitter: located and consistent, or narrow enough."""
-    if len(members) == 0:  # no candidate split: nothing to locate
-        return np.zeros(0, bool)
     if calibration is None:
         return _width(members) <= limit
     flags = _one_emitter(members, calibration)
@@ -168,9 +180,7 @@ def split_pairs(
     """
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
     limit = _width_limit(table)
-    candidates = np.flatnonzero(
-        _beyond(table, calibration, limit, rois[0].size if len(rois) else 0)
-    )
+    candidates = np.flatnonzero(_beyond(table, calibration, limit, rois.shape[1:]))
     if candidates.size == 0:
         return table
     local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
@@ -179,6 +189,8 @@ def split_pairs(
     proposed = is_split(fit, rois.shape[1:])
     # without a calibration the width is the evidence; with one, the flags that made a candidate
     table.loc[candidates, "merged"] = calibration is None
+    if not proposed.any():
+        return table
     members = _member_rows(table.loc[candidates[proposed]], _take(fit, proposed),
                            corner[candidates[proposed]])  # fmt: skip
     members["pair"] = np.repeat(candidates[proposed], 2)
