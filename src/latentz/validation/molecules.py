@@ -148,19 +148,23 @@ def _localized_nearest(
     n_frames: int,
     frame_shape: tuple[int, int],
     background: float = 20.0,
+    threshold: float | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray]:
     """The truth of ``molecules`` imaged by ``microscope``, localized with ``calibration`` and
-    defaults: (truth, the localization nearest each molecule, its position in the table or −1
-    where none lies within 2 px)."""
+    defaults (detection ``threshold`` as given): (truth, the localization nearest each molecule,
+    its position in the table or −1 where none lies within 2 px); ``attrs["rows"]`` of the
+    second holds the number of localizations."""
     frames, truth = molecule_frames(
         molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
         background=background, seed=int(rng.integers(2**31)),
     )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the CPU note
-        locs = localize(frames, calibration=calibration)
+        locs = localize(frames, calibration=calibration, threshold=threshold)
     row = nearest_rows(truth, locs, radius_px=2.0)
-    return truth, locs.iloc[np.maximum(row, 0)].reset_index(drop=True), row
+    found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
+    found.attrs["rows"] = len(locs)
+    return truth, found, row
 
 
 def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
@@ -187,6 +191,7 @@ def precision_against_bounds(
     density_per_um2: float = 0.1,
     isolation_px: float = 12.0,
     background: float = 20.0,
+    threshold: float | None = None,
     **placement,
 ) -> pd.DataFrame:
     """Sparse molecules (:func:`~latentz.simulate.molecules.place_molecules` with
@@ -195,14 +200,15 @@ def precision_against_bounds(
     frame's edge), ``found`` (a localization within 2 px) and that row's ``good``; its errors in
     x, y and z (nm, one offset per axis, the found isolated molecules' median error, removed),
     their reported 1σ (``*_err_nm``) and their Cramér–Rao bounds at the fitted z (``*_crlb_nm``,
-    :func:`latentz.validation.bounds.localization_bounds`)."""
+    :func:`latentz.validation.bounds.localization_bounds`). Detection uses ``threshold``
+    (default: localize's); ``attrs["unmatched"]`` counts the localizations near no molecule."""
     molecules = place_molecules(
         rng, n_frames=n_frames, frame_shape=field_shape,
         pixel_nm=microscope.optics.pixel_size_nm, density_per_um2=density_per_um2, **placement,
     )  # fmt: skip
     truth, found, row = _localized_nearest(
         molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=field_shape,
-        background=background,
+        background=background, threshold=threshold,
     )  # fmt: skip
     out = truth[["frame", "photons", "z_nm"]].rename(columns={"z_nm": "true_z_nm"})
     out = out.assign(
@@ -221,6 +227,7 @@ def precision_against_bounds(
         out[f"{axis}_nm"] = np.where(usable, error - np.median(error[usable]), np.nan)
         out[f"{axis}_err_nm"] = np.where(usable, found[f"{axis}_err_nm"], np.nan)
         out[f"{axis}_crlb_nm"] = np.where(usable, bounds[:, k] * (px if axis != "z" else 1), np.nan)
+    out.attrs["unmatched"] = found.attrs["rows"] - len(np.unique(row[row >= 0]))
     return out
 
 
