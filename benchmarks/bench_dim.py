@@ -10,7 +10,7 @@ molecules (no other within 12 px): the share found (a localization within 2 px) 
 RMS error and its robust twin (1.4826 MAD) in units of the Cramér–Rao bound of the five-parameter
 model (x, y, photons, background, z through the calibration curves,
 :func:`latentz.validation.bounds.localization_bounds`, at the fitted z), the median bound, and
-how often the reported 1σ covers the error, and the localizations near no molecule.
+how often the reported 1σ covers the error, and the localizations that are no molecule's.
 ``--threshold`` sets the detection threshold. Writes ``results/bench_dim.md``
 (``bench_dim_threshold_<t>.md``).
 
@@ -76,9 +76,9 @@ def main() -> None:
     threshold = "localize's default" if args.threshold is None else f"{args.threshold:g}"
     notes = (
         f"{args.microscopes} microscopes, background {args.background:g} photoelectrons per "
-        f"pixel, detection threshold {threshold}: {unmatched:.2f} localizations per frame lie "
-        "within 2 px of no molecule. A right 1σ covers 68.3 %; an efficient estimator's "
-        "RMS / CRLB is 1. "
+        f"pixel, detection threshold {threshold}: {unmatched:.2f} localizations per frame are "
+        "no molecule's nearest within 2 px (false detections and duplicates). A right 1σ covers "
+        "68.3 %; an efficient estimator's RMS / CRLB is 1. "
         f"Took {time.perf_counter() - start:.0f} s on a loaded machine."
     )
     suffix = "" if args.threshold is None else f"_threshold_{args.threshold:g}"

@@ -201,7 +201,8 @@ def precision_against_bounds(
     x, y and z (nm, one offset per axis, the found isolated molecules' median error, removed),
     their reported 1σ (``*_err_nm``) and their Cramér–Rao bounds at the fitted z (``*_crlb_nm``,
     :func:`latentz.validation.bounds.localization_bounds`). Detection uses ``threshold``
-    (default: localize's); ``attrs["unmatched"]`` counts the localizations near no molecule."""
+    (default: localize's); ``attrs["unmatched"]`` counts the localizations that are no molecule's
+    nearest within 2 px (false detections and duplicates)."""
     molecules = place_molecules(
         rng, n_frames=n_frames, frame_shape=field_shape,
         pixel_nm=microscope.optics.pixel_size_nm, density_per_um2=density_per_um2, **placement,
