@@ -56,11 +56,18 @@ def summary(errors: pd.DataFrame, label: str) -> list[dict]:
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def microscope_parser(doc: str, frames: int) -> argparse.ArgumentParser:
+    """The options of the benchmarks over random microscopes: how many, the first's seed (121:
+    none of those the truncation error was fitted on) and frames per microscope."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--microscopes", type=int, default=6)
     parser.add_argument("--seed", type=int, default=121, help="seed of the first microscope")
-    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--frames", type=int, default=frames)
+    return parser
+
+
+def main() -> None:
+    parser = microscope_parser(__doc__, frames=40)
     parser.add_argument("--no-truncation", action="store_true")
     args = parser.parse_args()
     if args.no_truncation:

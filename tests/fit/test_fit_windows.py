@@ -106,3 +106,23 @@ def test_bad_windows_are_refused_clearly(windows, match):
     rois = noisy_rois(truth_table(6, SIZE, seed=1), SIZE, seed=2)
     with pytest.raises(ValueError, match=match):
         fit_arrays(rois, windows=windows)
+
+
+def test_clipped_fits_match_the_numpy_twin_on_the_windows_pixels():
+    """The NumPy twin fits a window's pixels as a ROI of their own; the kernels' clipped fits,
+    moved back into the window's pixels, are the same fits."""
+    from latentz.fit._reference import fit_reference
+    from latentz.fit.api import METHODS, parameter_bounds
+
+    _, rois, windows, d = _edge_spots(24, seed=11)
+    got = fit_arrays(rois, windows=windows)
+    for k in range(6):
+        rows = np.flatnonzero(d == k)
+        c0 = CENTRE - k
+        pixels = rois[rows, :, c0:]
+        lower, upper = parameter_bounds(pixels.shape[1:], 0.0)
+        want = fit_reference(pixels, method=METHODS["mle"], s2=0.0, lower=lower, upper=upper)
+        params = got.params[rows].copy()
+        params[:, 0] -= c0
+        np.testing.assert_allclose(params, want[0], rtol=1e-8, atol=1e-8)
+        np.testing.assert_allclose(got.errors[rows], want[1], rtol=1e-8, atol=1e-8)

@@ -8,9 +8,10 @@ emitter when it exceeds ``threshold`` times that noise, raised near the frame's 
 filter's padding raises the noise (`edge_noise_gain`).
 
 A square ROI of ``roi_size`` pixels is cut around each maximum. Near the frame's edge the ROI is
-shifted inward so that it stays whole, and the detection is flagged ``edge``; the fit then still
-sees the whole ROI, but the emitter may be cut off. Two maxima that fall inside each other's ROI are
-both flagged ``close_pair``: their fits see each other's light.
+shifted inward so that it stays whole, and the detection is flagged ``edge``. `latentz.localize`
+then fits such an emitter in the ROI centred on it, clipped to the frame (`roi_windows`). Two
+maxima that fall inside each other's ROI are both flagged ``close_pair``: their fits see each
+other's light.
 """
 
 from __future__ import annotations

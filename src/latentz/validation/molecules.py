@@ -25,6 +25,7 @@ from latentz.simulate.molecules import (
     place_edge_molecules,
     place_molecules,
 )
+from latentz.validation.bounds import localization_bounds
 from latentz.validation.challenge import correct_rows
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
     "edge_errors",
     "localized_molecules",
     "nearest_rows",
+    "precision_against_bounds",
     "true_positives",
 ]
 
@@ -113,15 +115,9 @@ def edge_errors(
     axis, the inner molecules' median error, removed: a point molecule is not the calibration's
     bead) with their reported 1σ (``*_err_nm``)."""
     molecules = place_edge_molecules(rng, n_frames=n_frames, frame_shape=frame_shape, **placement)
-    frames, truth = molecule_frames(
-        molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
-        seed=int(rng.integers(2**31)),
-    )  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the CPU note
-        locs = localize(frames, calibration=calibration)
-    row = nearest_rows(truth, locs, radius_px=2.0)
-    found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
+    truth, found, row = _localized_nearest(
+        molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=frame_shape
+    )
     cut_x = truth["across"].to_numpy() == 0
     inner = (truth["across"].to_numpy() == -1) & (row >= 0) & found["in_range"].to_numpy(bool)
     errors = {}
@@ -143,6 +139,34 @@ def edge_errors(
     return out
 
 
+def _localized_nearest(
+    molecules: pd.DataFrame,
+    microscope: Microscope,
+    calibration: Calibration,
+    rng: np.random.Generator,
+    *,
+    n_frames: int,
+    frame_shape: tuple[int, int],
+    background: float = 20.0,
+    threshold: float | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray]:
+    """The truth of ``molecules`` imaged by ``microscope``, localized with ``calibration`` and
+    defaults (detection ``threshold`` as given): (truth, the localization nearest each molecule,
+    its position in the table or −1 where none lies within 2 px); ``attrs["rows"]`` of the
+    second holds the number of localizations."""
+    frames, truth = molecule_frames(
+        molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
+        background=background, seed=int(rng.integers(2**31)),
+    )  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the CPU note
+        locs = localize(frames, calibration=calibration, threshold=threshold)
+    row = nearest_rows(truth, locs, radius_px=2.0)
+    found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
+    found.attrs["rows"] = len(locs)
+    return truth, found, row
+
+
 def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
     """For each true molecule, the position in ``locs`` of the nearest row of its frame within
     ``radius_px``, else −1."""
@@ -155,3 +179,65 @@ def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -
         )
         nearest[mine] = np.where(np.isfinite(dist), rows[np.minimum(k, len(rows) - 1)], -1)
     return nearest
+
+
+def precision_against_bounds(
+    microscope: Microscope,
+    calibration: Calibration,
+    rng: np.random.Generator,
+    *,
+    n_frames: int,
+    field_shape: tuple[int, int] = (128, 128),
+    density_per_um2: float = 0.1,
+    isolation_px: float = 12.0,
+    background: float = 20.0,
+    threshold: float | None = None,
+    **placement,
+) -> pd.DataFrame:
+    """Sparse molecules (:func:`~latentz.simulate.molecules.place_molecules` with
+    ``placement``) localized with ``calibration`` and defaults, one row per molecule: its
+    ``photons``, ``isolated`` (no other molecule within ``isolation_px``, none within 2 px of the
+    frame's edge), ``found`` (a localization within 2 px) and that row's ``good``; its errors in
+    x, y and z (nm, one offset per axis, the found isolated molecules' median error, removed),
+    their reported 1σ (``*_err_nm``) and their Cramér–Rao bounds at the fitted z (``*_crlb_nm``,
+    :func:`latentz.validation.bounds.localization_bounds`). Detection uses ``threshold``
+    (default: localize's); ``attrs["unmatched"]`` counts the localizations that are no molecule's
+    nearest within 2 px (false detections and duplicates)."""
+    molecules = place_molecules(
+        rng, n_frames=n_frames, frame_shape=field_shape,
+        pixel_nm=microscope.optics.pixel_size_nm, density_per_um2=density_per_um2, **placement,
+    )  # fmt: skip
+    truth, found, row = _localized_nearest(
+        molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=field_shape,
+        background=background, threshold=threshold,
+    )  # fmt: skip
+    out = truth[["frame", "photons", "z_nm"]].rename(columns={"z_nm": "true_z_nm"})
+    out = out.assign(
+        isolated=_isolated(truth, isolation_px, field_shape),
+        found=row >= 0,
+        good=found["good"].to_numpy(bool) & (row >= 0),
+    )
+    usable = out["found"].to_numpy() & out["isolated"].to_numpy() & found["in_range"].to_numpy()
+    px = calibration.camera.pixel_size_nm
+    bounds = localization_bounds(
+        calibration, found["cal_particle"].to_numpy(), found["z_nm"].to_numpy(),
+        truth["photons"].to_numpy(), background, readnoise=calibration.camera.readnoise,
+    )  # fmt: skip
+    for k, axis in enumerate("xyz"):
+        error = (found[f"{axis}_nm"] - truth[f"{axis}_nm"]).to_numpy()
+        out[f"{axis}_nm"] = np.where(usable, error - np.median(error[usable]), np.nan)
+        out[f"{axis}_err_nm"] = np.where(usable, found[f"{axis}_err_nm"], np.nan)
+        out[f"{axis}_crlb_nm"] = np.where(usable, bounds[:, k] * (px if axis != "z" else 1), np.nan)
+    out.attrs["unmatched"] = found.attrs["rows"] - len(np.unique(row[row >= 0]))
+    return out
+
+
+def _isolated(truth: pd.DataFrame, radius_px: float, field_shape: tuple[int, int]) -> np.ndarray:
+    """Molecules with no other of their frame within ``radius_px`` and 2 px or more inside."""
+    out = np.zeros(len(truth), bool)
+    xy = truth[["x", "y"]].to_numpy()
+    for _, rows in truth.groupby("frame").indices.items():
+        count = cKDTree(xy[rows]).query_ball_point(xy[rows], radius_px, return_length=True)
+        out[rows] = count == 1
+    inside = np.all((xy >= 2) & (xy <= np.array(field_shape[::-1]) - 3), axis=1)
+    return out & inside
