@@ -309,7 +309,7 @@ def main() -> None:
         cal = lz.calibrate(crop, z_nm, camera=bead_camera)
         box, field_model = int(cal.roi_size), cal.field_model  # chosen (and said) on first use
     t_cal = time.perf_counter() - t0
-    said = sorted({str(w.message) for w in said if "CUDA" not in str(w.message)})
+    said = sorted({str(w.message) for w in said if "cuda" not in str(w.message).lower()})
     print(f"latentz calibrated in {t_cal:.0f} s: ROI {box}, shape {cal.shape}, {field_model}")
 
     positions = truth_beads[truth_beads.plane == 0].set_index("bead")[["x_px", "y_px"]]
