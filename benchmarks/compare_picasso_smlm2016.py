@@ -39,7 +39,7 @@ import pandas as pd
 import tifffile
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data"
+DATA = Path(os.environ.get("LATENTZ_SHARED", ROOT / ".." / "shared")) / "data"
 TIF = DATA / "smlm2016-as-beads.tif"
 CSV = DATA / "smlm2016-as-beads.csv"
 OUT = ROOT / "benchmarks" / "results"
@@ -64,7 +64,8 @@ def _load():
     if not TIF.exists() or not CSV.exists():
         sys.exit(
             f"ERROR: real data not found: expected {TIF} and {CSV} (the folder ../shared/data "
-            "next to the repository root). This benchmark needs the SMLM 2016 AS bead stack."
+            "next to the repository root, or $LATENTZ_SHARED/data). This benchmark needs the "
+            "SMLM 2016 AS bead stack."
         )
     stack = tifffile.imread(TIF)
     truth = pd.read_csv(CSV)
