@@ -2,7 +2,7 @@
 
 Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
 that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
-freedom) and away from the frame's edge is a candidate when
+freedom; at the frame's edge, over the ROI's pixels inside the frame) is a candidate when
 
 - two or more detections' fits converged on it (within `DUPLICATE_PX`, in one ROI centred on
   the same spot): the detector saw two peaks where one Gaussian sees one spot, an overlap of
@@ -16,17 +16,17 @@ freedom) and away from the frame's edge is a candidate when
     MAD) above their median: nothing else says how wide one emitter is.
 
 Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`, once per spot. Its two emitters
-replace the one-emitter row, and every other fit that converged on the same spot, when the
-second emitter is significant (:func:`latentz.fit.pairs.is_split`) and each looks like one
-emitter (located and consistent with the calibration, or no wider than that limit), unless
-either lies on another detection's fit (a neighbour detected by itself). Both rows carry the
-same ``pair`` number. A candidate that is not split stays as it was: an overlap the two-emitter
-fit cannot resolve. Fits that converged on one spot remain one emitter, which
-:func:`.quality.assess` reports once (the others are ``duplicate``). A candidate shaped beyond
-one emitter is, without a calibration, marked ``merged``, which :func:`.quality.assess` flags
-``unresolved``; with one, it is already ``out_of_range`` or ``inconsistent``, the flags that
-made it a candidate (and that dim or distant single emitters carry too, so ``unresolved`` is
-not added). Only candidates are fitted twice, so ordinary spots cost nothing more.
+replace the one-emitter row, and every other fit that converged on the same spot, when the second
+emitter is significant (:func:`latentz.fit.pairs.is_split`) and each looks like one emitter (located
+and consistent with the calibration, or no wider than that limit), unless either lies on another
+detection's fit (a neighbour detected by itself) or outside the frame. Both rows carry the same
+``pair`` number. A candidate that is not split stays as it was: an overlap the two-emitter fit
+cannot resolve. Fits that converged on one spot remain one emitter, which :func:`.quality.assess`
+reports once (the others are ``duplicate``). A candidate shaped beyond one emitter is, without a
+calibration, marked ``merged``, which :func:`.quality.assess` flags ``unresolved``; with one, it is
+already ``out_of_range`` or ``inconsistent``, the flags that made it a candidate (and that dim or
+distant single emitters carry too, so ``unresolved`` is not added). Only candidates are fitted
+twice, so ordinary spots cost nothing more.
 """
 
 from __future__ import annotations
@@ -117,17 +117,17 @@ def _candidates(
     calibration: Calibration | None,
     limit: float,
     shape: tuple[int, ...],
+    seen_pixels: np.ndarray,
     group: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(candidate, beyond): which rows, fitted in ROIs of ``shape`` pixels, get the two-emitter
-    fit (one per `_copies` group), and which are shaped beyond one emitter (see the module
-    docstring); the calibration is applied to the poor fits only."""
+    """(candidate, beyond): which rows, fitted in ROIs of ``shape`` pixels of which
+    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `_copies` group), and
+    which are shaped beyond one emitter (see the module docstring); the calibration is applied
+    to the poor fits only."""
     half = (min(shape) - 1) / 2
-    pixels = int(np.prod(shape))
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    # a ROI at the frame's edge is not all frame
-    finite &= ~table["edge"].to_numpy(bool) & ~_crowded(table, half)
-    dof = pixels - len(PARAMS)
+    finite &= ~_crowded(table, half)
+    dof = seen_pixels - len(PARAMS)  # a ROI clipped to the frame sees fewer pixels
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
     seen_twice = np.bincount(group, minlength=len(table))[group] > 1
@@ -206,14 +206,15 @@ def split_pairs(
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
     limit = _width_limit(table)
     group = _copies(table)
-    chosen, beyond = _candidates(table, calibration, limit, rois.shape[1:], group)
+    seen = np.isfinite(rois).sum(axis=(1, 2))
+    chosen, beyond = _candidates(table, calibration, limit, rois.shape[1:], seen, group)
     candidates = np.flatnonzero(chosen)
     if candidates.size == 0:
         return table
     local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
     local[:, :2] -= corner[candidates]
     fit = fit_pairs(rois[candidates], local, readnoise=readnoise, errors="sandwich")
-    proposed = is_split(fit, rois.shape[1:])
+    proposed = is_split(fit, rois.shape[1:]) & _in_frame(fit, rois[candidates])
     # without a calibration the width is the evidence; with one, the flags that made a candidate
     table.loc[candidates, "merged"] = beyond[candidates] & (calibration is None)
     if not proposed.any():
@@ -244,6 +245,14 @@ def _detected_apart(table: pd.DataFrame, members: pd.DataFrame, group: np.ndarra
     own = group[members["pair"].to_numpy()]
     other = np.array([np.any(group[rows] != g) for rows, g in zip(near, own, strict=True)])
     return other[0::2] | other[1::2]
+
+
+def _in_frame(fit: PairFit, rois: np.ndarray) -> np.ndarray:
+    """Whether both emitters of each fit lie on a pixel of their ROI inside the frame (not NaN)."""
+    n, h, w = rois.shape
+    x, y = (np.clip(np.rint(np.nan_to_num(fit.params[..., k])), 0, s - 1).astype(int)
+            for k, s in ((0, w), (1, h)))  # fmt: skip
+    return np.isfinite(rois[np.arange(n)[:, None], y, x]).all(axis=1)
 
 
 def _points(rows: pd.DataFrame) -> np.ndarray:
