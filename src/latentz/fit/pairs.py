@@ -103,11 +103,11 @@ def _model(theta: np.ndarray, grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.n
     return mu, jac
 
 
-def _loglik(data: np.ndarray, mu: np.ndarray, s2: float) -> np.ndarray:
+def _loglik(data: np.ndarray, mu: np.ndarray, s2: float, seen: np.ndarray) -> np.ndarray:
     """Σ d' log mu' − mu' with d' = d + s², mu' = mu + s² (the Poisson log-likelihood less its
-    data-only constant), per ROI."""
+    data-only constant) over the ``seen`` pixels (1, else 0), per ROI."""
     m = np.maximum(mu + s2, 1e-12)
-    return np.sum((data + s2) * np.log(m) - m, axis=1)
+    return np.sum(seen * ((data + s2) * np.log(m) - m), axis=1)
 
 
 def _bounds(shape: tuple[int, int], s2: float) -> tuple[np.ndarray, np.ndarray]:
@@ -177,14 +177,14 @@ def _starts(rois: np.ndarray, one: np.ndarray, s2: float) -> np.ndarray:
 
 
 def _levenberg_marquardt(
-    data: np.ndarray, theta: np.ndarray, shape: tuple[int, int], s2: float, max_iter: int,
-    tol: float,
+    data: np.ndarray, seen: np.ndarray, theta: np.ndarray, shape: tuple[int, int], s2: float,
+    max_iter: int, tol: float,
 ) -> tuple[np.ndarray, ...]:  # fmt: skip
-    """Maximise the Poisson likelihood from ``theta`` (n, 13) for every ROI of ``data``
-    (n, p); returns (theta, loglik, stopped within tol, iterations)."""
+    """Maximise the Poisson likelihood over the ``seen`` pixels from ``theta`` (n, 13) for every
+    ROI of ``data`` (n, p); returns (theta, loglik, stopped within tol, iterations)."""
     grid = tuple(g.ravel().astype(float) for g in np.indices(shape)[::-1])
     lo, hi = _bounds(shape, s2)
-    loglik = _loglik(data, _model(theta, grid)[0], s2)
+    loglik = _loglik(data, _model(theta, grid)[0], s2, seen)
     damping = np.full(len(theta), 1e-3)
     done, converged = np.zeros(len(theta), bool), np.zeros(len(theta), bool)
     iterations = np.zeros(len(theta), np.int64)
@@ -195,13 +195,13 @@ def _levenberg_marquardt(
         iterations[act] += 1
         mu, jac = _model(theta[act], grid)
         m = np.maximum(mu + s2, 1e-12)
-        grad = np.matmul(((data[act] + s2) / m - 1.0)[:, None, :], jac)[:, 0]
-        info = np.matmul((jac / m[:, :, None]).transpose(0, 2, 1), jac)
+        grad = np.matmul((seen[act] * ((data[act] + s2) / m - 1.0))[:, None, :], jac)[:, 0]
+        info = np.matmul((jac * (seen[act] / m)[:, :, None]).transpose(0, 2, 1), jac)
         diag = np.diagonal(info, 0, 1, 2)
         system = info + (damping[act, None] * diag + 1e-9 * (diag + 1.0))[:, :, None] * np.eye(_N)
         step = np.linalg.solve(system, grad[:, :, None])[:, :, 0]
         trial = np.clip(theta[act] + step, lo, hi)
-        new = _loglik(data[act], _model(trial, grid)[0], s2)
+        new = _loglik(data[act], _model(trial, grid)[0], s2, seen[act])
         better = new > loglik[act]
         with np.errstate(invalid="ignore", divide="ignore"):  # 1/I_kk: at most the bound
             small = np.all(step**2 * diag <= tol**2, axis=1)
@@ -215,25 +215,32 @@ def _levenberg_marquardt(
 
 
 def _natural(
-    theta: np.ndarray, data: np.ndarray, shape: tuple[int, int], s2: float, sandwich: bool
+    theta: np.ndarray,
+    data: np.ndarray,
+    seen: np.ndarray,
+    shape: tuple[int, int],
+    s2: float,
+    sandwich: bool,
 ) -> tuple[np.ndarray, ...]:
     """Natural parameters (n, 2, 7), their standard deviations (n, 2, 7) and whether the
-    information was invertible (n,), at internal parameters ``theta`` (n, 13) fitted to
-    ``data`` (n, p): the Cramér–Rao bounds, or with ``sandwich`` the covariance of a
-    misspecified fit, ``I⁻¹ (Σ J Jᵀ (d − mu)² / (mu + s²)²) I⁻¹`` times ``p / (p − 13)`` for
-    the residuals' lost degrees of freedom (the bound on average where the model is right)."""
+    information was invertible (n,), at internal parameters ``theta`` (n, 13) fitted to the
+    ``seen`` pixels of ``data`` (n, p): the Cramér–Rao bounds, or with ``sandwich`` the
+    covariance of a misspecified fit, ``I⁻¹ (Σ J Jᵀ (d − mu)² / (mu + s²)²) I⁻¹`` times
+    ``p / (p − 13)`` (p seen pixels) for the residuals' lost degrees of freedom (the bound on
+    average where the model is right)."""
     grid = tuple(g.ravel().astype(float) for g in np.indices(shape)[::-1])
     mu, jac = _model(theta, grid)
     m = np.maximum(mu + s2, 1e-12)
-    info = np.matmul((jac / m[:, :, None]).transpose(0, 2, 1), jac)
+    info = np.matmul((jac * (seen / m)[:, :, None]).transpose(0, 2, 1), jac)
     usable = np.isfinite(info).all(axis=(1, 2))
     usable[usable] = np.linalg.cond(info[usable]) < 1e12
     cov = np.full((len(theta), _N, _N), np.nan)
     cov[usable] = np.linalg.inv(info[usable])
     if sandwich:
-        scaled = jac * ((data - mu) / m)[:, :, None]
+        scaled = jac * (seen * (data - mu) / m)[:, :, None]
         # residuals of a fit are smaller than the noise by the parameters they took up: p/(p−13)
-        meat = np.matmul(scaled.transpose(0, 2, 1), scaled) * (data.shape[1] / (data.shape[1] - _N))
+        p = seen.sum(axis=1)[:, None, None]
+        meat = np.matmul(scaled.transpose(0, 2, 1), scaled) * (p / np.maximum(p - _N, 1.0))
         cov[usable] = cov[usable] @ meat[usable] @ cov[usable]
     sd = np.sqrt(np.maximum(np.diagonal(cov, 0, 1, 2), 0.0))
     params, errors = np.empty((len(theta), 2, N_PARAMS)), np.empty((len(theta), 2, N_PARAMS))
@@ -262,7 +269,8 @@ def fit_pairs(
     Parameters
     ----------
     rois : ndarray (n, h, w)
-        Photoelectrons per pixel.
+        Photoelectrons per pixel; NaN pixels (a ROI clipped to the frame: those outside it) are
+        left out of the likelihood, as :mod:`latentz.fit.windows` leaves them out.
     one : ndarray (n, 7)
         The one-emitter fits in natural parameters (`latentz.fit.PARAMS`), as
         `latentz.fit.fit_arrays` returns them.
@@ -297,23 +305,27 @@ def _fit_batch(
 ) -> PairFit:
     """`fit_pairs` of one batch of ROIs (n, h, w) with read-noise variance ``s2``."""
     n, h, w = rois.shape
-    data = rois.reshape(n, -1)
+    seen = np.isfinite(rois)
+    rois = np.where(seen, rois, 0.0)
+    data, seen = rois.reshape(n, -1), seen.reshape(n, -1).astype(float)
     theta, loglik, stopped, iterations = _levenberg_marquardt(
-        np.concatenate([data, data]), _starts(rois, one, s2), (h, w), s2, max_iter, tol
-    )
+        np.concatenate([data, data]), np.concatenate([seen, seen]), _starts(rois, one, s2),
+        (h, w), s2, max_iter, tol,
+    )  # fmt: skip
     best = np.where(loglik[n:] > loglik[:n], np.arange(n) + n, np.arange(n))
     best = np.where(np.isfinite(loglik[best]), best, np.arange(n))
     theta, loglik, stopped = theta[best], loglik[best], stopped[best]
-    params, errors, usable = _natural(theta, data, (h, w), s2, sandwich)
+    params, errors, usable = _natural(theta, data, seen, (h, w), s2, sandwich)
     lo, hi = _bounds((h, w), s2)
     shape = [3, 4, 5, 9, 10, 11]  # log widths and atanh rho of both emitters
     inside = np.all((theta[:, shape] > lo[shape] + 1e-6) & (theta[:, shape] < hi[shape] - 1e-6), 1)
     grid = tuple(g.ravel().astype(float) for g in np.indices((h, w))[::-1])
     mu = _model(theta, grid)[0]
-    single = _loglik(data, model_and_jacobian(one, (h, w), jacobian=False)[0], s2)
-    constant = np.sum(gammaln(np.maximum(data + s2, 0.0) + 1.0), axis=1)
+    single = _loglik(data, model_and_jacobian(one, (h, w), jacobian=False)[0], s2, seen)
+    constant = np.sum(seen * gammaln(np.maximum(data + s2, 0.0) + 1.0), axis=1)
+    chi2 = np.sum(seen * (data - mu) ** 2 / np.maximum(mu + s2, 1e-12), 1)
     return PairFit(
-        params, errors, loglik - constant, np.sum((data - mu) ** 2 / np.maximum(mu + s2, 1e-12), 1),
+        params, errors, loglik - constant, chi2,
         iterations[best], 2.0 * (loglik - single), stopped & usable & inside,
     )  # fmt: skip
 

@@ -2,26 +2,31 @@
 
 Each detection is fitted with one Gaussian of eq. 1 (:mod:`latentz.localization.movie`). A fit
 that is poor (Pearson chi-square :data:`CHI2_SDS` standard deviations above its degrees of
-freedom), away from the frame's edge, with no other emitter's fit in its ROI (fits within
-`DUPLICATE_PX` are the same emitter), and shaped beyond what one emitter looks like is a
-candidate:
+freedom; at the frame's edge, over the ROI's pixels inside the frame) is a candidate when
 
-- with a calibration, the calibration does not locate it or its widths and ρ lie far from the
-  curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
-- without one, its long-axis width exceeds that of the chunk's isolated fits (no other
-  detection in the ROI) by more than :data:`WIDTH_MADS` robust standard deviations (1.4826 MAD)
-  above their median: nothing else says how wide one emitter is.
+- two or more detections' fits converged on it (within `DUPLICATE_PX`, in one ROI centred on
+  the same spot): the detector saw two peaks where one Gaussian sees one spot, an overlap of
+  emitters about 1–2 px apart that one fit merges; or
+- no other emitter's fit lies in its ROI, and it is shaped beyond what one emitter looks like:
 
-Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`. Its two emitters replace the
-one-emitter row when the second emitter is significant (:func:`latentz.fit.pairs.is_split`) and
-each looks like one emitter (located and consistent with the calibration, or no wider than
-that limit), unless either lies on another detection's fit (a neighbour detected by itself).
-Both rows carry the same ``pair`` number. A candidate that is not split stays one row: an overlap
-the two-emitter fit cannot resolve. Without a calibration it is marked ``merged``, which
-:func:`.quality.assess` flags ``unresolved``; with one, it is already ``out_of_range`` or
-``inconsistent``, the flags that made it a candidate (and that dim or distant single emitters
-carry too, so ``unresolved`` is not added). Only candidates are fitted twice, so ordinary spots
-cost nothing more.
+  - with a calibration, the calibration does not locate it or its widths and ρ lie far from
+    the curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
+  - without one, its long-axis width exceeds that of the chunk's isolated fits (no other
+    detection in the ROI) by more than :data:`WIDTH_MADS` robust standard deviations (1.4826
+    MAD) above their median: nothing else says how wide one emitter is.
+
+Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`, once per spot. Its two emitters
+replace the one-emitter row, and every other fit that converged on the same spot, when the second
+emitter is significant (:func:`latentz.fit.pairs.is_split`) and each looks like one emitter (located
+and consistent with the calibration, or no wider than that limit), unless either lies on another
+detection's fit (a neighbour detected by itself) or outside the frame. Both rows carry the same
+``pair`` number. A candidate that is not split stays as it was: an overlap the two-emitter fit
+cannot resolve. Fits that converged on one spot remain one emitter, which :func:`.quality.assess`
+reports once (the others are ``duplicate``). A candidate shaped beyond one emitter is, without a
+calibration, marked ``merged``, which :func:`.quality.assess` flags ``unresolved``; with one, it is
+already ``out_of_range`` or ``inconsistent``, the flags that made it a candidate (and that dim or
+distant single emitters carry too, so ``unresolved`` is not added). Only candidates are fitted
+twice, so ordinary spots cost nothing more.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from latentz.fit._model import PARAMS, photons_of
@@ -95,27 +102,45 @@ def _crowded(table: pd.DataFrame, half: float) -> np.ndarray:
     return near > same
 
 
-def _beyond(
-    table: pd.DataFrame, calibration: Calibration | None, limit: float, shape: tuple[int, ...]
-) -> np.ndarray:
-    """Which rows, fitted in ROIs of ``shape`` pixels, fit poorly and are shaped beyond one
-    emitter (see the module docstring); the calibration is applied to the poor fits only."""
+def _copies(table: pd.DataFrame) -> np.ndarray:
+    """For each row, the first row of its group of fits of one frame within `DUPLICATE_PX` of
+    each other (chained): detections whose fits converged on one spot share a group."""
+    n = len(table)
+    close = cKDTree(_points(table)).query_pairs(DUPLICATE_PX, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    return np.unique(label, return_index=True)[1][label]
+
+
+def _candidates(
+    table: pd.DataFrame,
+    calibration: Calibration | None,
+    limit: float,
+    shape: tuple[int, ...],
+    seen_pixels: np.ndarray,
+    group: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(candidate, beyond): which rows, fitted in ROIs of ``shape`` pixels of which
+    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `_copies` group), and
+    which are shaped beyond one emitter (see the module docstring); the calibration is applied
+    to the poor fits only."""
     half = (min(shape) - 1) / 2
-    pixels = int(np.prod(shape))
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    # a ROI at the frame's edge is not all frame
-    finite &= ~table["edge"].to_numpy(bool) & ~_crowded(table, half)
-    dof = pixels - len(PARAMS)
+    finite &= ~_crowded(table, half)
+    dof = seen_pixels - len(PARAMS)  # a ROI clipped to the frame sees fewer pixels
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
+    seen_twice = np.bincount(group, minlength=len(table))[group] > 1
     if calibration is None:
         with np.errstate(invalid="ignore"):
-            return poor & (_width(table) > limit)
-    beyond = np.zeros(len(table), bool)
-    if poor.any():
-        flags = _one_emitter(table[poor], calibration)
-        beyond[poor] = (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
-    return beyond
+            beyond = poor & (_width(table) > limit)
+    else:
+        beyond = np.zeros(len(table), bool)
+        if poor.any():
+            flags = _one_emitter(table[poor], calibration)
+            beyond[poor] = (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+    first = group == np.arange(len(table))
+    return first & (beyond | (poor & seen_twice)), beyond
 
 
 def _look_like_one(
@@ -180,15 +205,18 @@ def split_pairs(
     """
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
     limit = _width_limit(table)
-    candidates = np.flatnonzero(_beyond(table, calibration, limit, rois.shape[1:]))
+    group = _copies(table)
+    seen = np.isfinite(rois).sum(axis=(1, 2))
+    chosen, beyond = _candidates(table, calibration, limit, rois.shape[1:], seen, group)
+    candidates = np.flatnonzero(chosen)
     if candidates.size == 0:
         return table
     local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
     local[:, :2] -= corner[candidates]
     fit = fit_pairs(rois[candidates], local, readnoise=readnoise, errors="sandwich")
-    proposed = is_split(fit, rois.shape[1:])
+    proposed = is_split(fit, rois.shape[1:]) & _in_frame(fit, rois[candidates])
     # without a calibration the width is the evidence; with one, the flags that made a candidate
-    table.loc[candidates, "merged"] = calibration is None
+    table.loc[candidates, "merged"] = beyond[candidates] & (calibration is None)
     if not proposed.any():
         return table
     members = _member_rows(table.loc[candidates[proposed]], _take(fit, proposed),
@@ -197,26 +225,34 @@ def split_pairs(
     members["merged"] = False
     members.attrs = table.attrs
     one = _look_like_one(members, calibration, limit)
-    detected = _detected_apart(table, members)
+    detected = _detected_apart(table, members, group)
     kept = one[0::2] & one[1::2] & ~detected
     table.loc[candidates[proposed][detected], "merged"] = False
-    keep_rows = np.ones(len(table), bool)
-    keep_rows[candidates[proposed][kept]] = False
+    # the pair replaces its row and every other fit that converged on the same spot
+    keep_rows = ~np.isin(group, candidates[proposed][kept])
     out = pd.concat([table[keep_rows], members[np.repeat(kept, 2)]], ignore_index=True)
     return out.sort_values("frame", kind="stable", ignore_index=True)
 
 
-def _detected_apart(table: pd.DataFrame, members: pd.DataFrame) -> np.ndarray:
+def _detected_apart(table: pd.DataFrame, members: pd.DataFrame, group: np.ndarray) -> np.ndarray:
     """For each pair of ``members`` (rows 2k, 2k + 1), whether either emitter is within
-    `DUPLICATE_PX` of another detection's fit in its frame (not the pair's own row
-    ``table.loc[pair]``): the ROI held a neighbour that was detected and fitted by itself."""
+    `DUPLICATE_PX` of another detection's fit in its frame (not one of the `_copies` ``group``
+    of the pair's own row ``table.loc[pair]``): the ROI held a neighbour that was detected and
+    fitted by itself."""
     if len(members) == 0:
         return np.zeros(0, bool)
-    distance, index = cKDTree(_points(table)).query(_points(members), k=2)
-    own = members["pair"].to_numpy()[:, None]
-    other = np.where(index[:, :1] == own, distance[:, 1:], distance[:, :1])[:, 0]
-    near = other < DUPLICATE_PX
-    return near[0::2] | near[1::2]
+    near = cKDTree(_points(table)).query_ball_point(_points(members), DUPLICATE_PX)
+    own = group[members["pair"].to_numpy()]
+    other = np.array([np.any(group[rows] != g) for rows, g in zip(near, own, strict=True)])
+    return other[0::2] | other[1::2]
+
+
+def _in_frame(fit: PairFit, rois: np.ndarray) -> np.ndarray:
+    """Whether both emitters of each fit lie on a pixel of their ROI inside the frame (not NaN)."""
+    n, h, w = rois.shape
+    x, y = (np.clip(np.rint(np.nan_to_num(fit.params[..., k])), 0, s - 1).astype(int)
+            for k, s in ((0, w), (1, h)))  # fmt: skip
+    return np.isfinite(rois[np.arange(n)[:, None], y, x]).all(axis=1)
 
 
 def _points(rows: pd.DataFrame) -> np.ndarray:
