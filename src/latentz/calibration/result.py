@@ -460,13 +460,42 @@ class Calibration:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
         field_sigma`), less the local models' part of the held-out errors."""
         kind = self.field_model
-        table = self.crossval_of(kind)
-        key = f"crossval_model_sigma/{kind}/{axis}"
+        return self._held_out_sigma(self.crossval_of(kind), kind, axis, z, distance,
+                                    f"crossval_model_sigma/{kind}/{axis}")  # fmt: skip
+
+    def _held_out_sigma(self, table: pd.DataFrame, kind: str, axis: str, z: np.ndarray,
+                        distance: np.ndarray, key: str) -> np.ndarray:  # fmt: skip
+        """:func:`~latentz.calibration.errors.field_sigma` of the held-out errors ``table``
+        with the local models' σ at its rows (cached under ``key``)."""
         if key not in self._cache:
             scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
-            rows = table["particle"].to_numpy()
+            rows = table["particle"].to_numpy(int)
             self._cache[key] = scale * self._model_sigma(axis, rows, table["z_nm"].to_numpy())
         return field_sigma(table, kind, axis, z, distance, model_nm=self._cache[key])
+
+    def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None,
+                    distance: np.ndarray) -> np.ndarray:  # fmt: skip
+        """1σ (nm) of the z error of spots at ``z`` of background ratio ``c_spot`` (None: as
+        bright as the calibration) ``distance`` px from the particle that localizes them, from
+        held-out particles localized by their nearer and farther neighbours
+        (:func:`~latentz.calibration.dim_crossval.pair_table`): at each of its ratios c the
+        :func:`~latentz.calibration.errors.field_sigma` line in distance, then linear in log c
+        between them."""
+        from latentz.calibration.dim_crossval import pair_table
+
+        if "pair_table" not in self._cache:
+            self._cache["pair_table"] = pair_table(self)
+        table = self._cache["pair_table"]
+        if len(table) == 0 or not table["in_range"].any():
+            return np.zeros(np.shape(z))
+        levels = np.unique(table["c"].to_numpy())
+        by_level = np.array([
+            self._held_out_sigma(table[table["c"] == c], "pairs", "z", z, distance,
+                                 f"pair_model_sigma/{c}")
+            for c in levels])  # fmt: skip
+        if levels.size == 1 or c_spot is None:
+            return by_level[0]
+        return _interp_levels(np.log(levels), by_level, c_spot)
 
     def _locate(self, s: np.ndarray, p: np.ndarray, cols: dict, located: np.ndarray) -> tuple:
         """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
@@ -545,13 +574,7 @@ class Calibration:
             return np.zeros(np.shape(z))
         zq = np.where(np.isfinite(z), z, centres[0])
         by_level = np.array([np.interp(zq, centres, row) for row in sigma])  # (levels, spots)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.log(np.asarray(c_spot, dtype=np.float64))
-        x = np.clip(np.where(np.isfinite(x), x, log_c[0]), log_c[0], log_c[-1])
-        j = np.clip(np.searchsorted(log_c, x), 1, log_c.size - 1)
-        t = (x - log_c[j - 1]) / (log_c[j] - log_c[j - 1])
-        spots = np.arange(x.size)
-        return (1 - t) * by_level[j - 1, spots] + t * by_level[j, spots]
+        return _interp_levels(log_c, by_level, c_spot)
 
     @property
     def reference_field(self) -> ReferenceField:
@@ -582,7 +605,11 @@ class Calibration:
         return self.kept[idx]
 
     def apply(
-        self, spots: pd.DataFrame, *, amplitude_reference: str = "calibration"
+        self,
+        spots: pd.DataFrame,
+        *,
+        amplitude_reference: str = "calibration",
+        error_parts: bool = False,
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
@@ -605,6 +632,11 @@ class Calibration:
             the calibration particles, whose own spread in brightness ``z_err_nm`` then
             includes), or that of each emitter's own track (the spot with the smallest |ρ| in
             its ``particle`` group).
+        error_parts : bool
+            Also return what ``z_err_nm`` is made of: ``z_err_fit_nm``, the spot's own fit
+            precision (NaN for spots without ``*_err`` columns), and ``z_err_field_nm``, the
+            part that varies across the field (field model, dimming transfer, distance to the
+            particle); the local model's σ is the rest, in quadrature.
 
         Returns
         -------
@@ -639,7 +671,7 @@ class Calibration:
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
         at = _row_weights(self.local.z_nm, p, z)
-        z_err = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
+        z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
         out, px = spots.copy(), self.camera.pixel_size_nm
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
@@ -647,15 +679,30 @@ class Calibration:
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_err = combine(z_err, self._field_sigma("z", z, distance))
-        if "background" in spots.columns and "dim0_wx" in self.traces.data:
-            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
-                                      self.camera.readnoise)  # fmt: skip
-            z_err = combine(z_err, self._transfer_sigma(z, c_spot))
-        out["z_err_nm"] = np.where(in_range, z_err, np.nan)
+        z_field = self._z_field_error(spots, cols, z, distance)
+        out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
+        if error_parts:
+            out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
+            out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p
         return out
+
+    def _z_field_error(self, spots: pd.DataFrame, cols: dict, z: np.ndarray,
+                       distance: np.ndarray) -> np.ndarray:  # fmt: skip
+        """The part of σ_z (nm) that varies across the field, as held-out particles measure
+        it: the field model's cross-validated error with the dimming correction's transfer
+        (at the spot's background ratio c), or, where larger, the error of held-out particles
+        seen as emitters of that c and localized by neighbours as far away as the spot is from
+        its particle (:meth:`_pair_sigma`; the cross-validation holds particles out only at
+        their spacing, and a field model that extrapolates errs more beyond it)."""
+        field = self._field_sigma("z", z, distance)
+        c_spot = None
+        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
+                                      self.camera.readnoise)  # fmt: skip
+            field = combine(field, self._transfer_sigma(z, c_spot))
+        return np.fmax(field, self._pair_sigma(z, c_spot, distance))
 
     def _amplitude_reference(
         self, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
@@ -680,23 +727,26 @@ class Calibration:
         at: tuple[np.ndarray, np.ndarray, np.ndarray],
         ref: np.ndarray,
         ref_scatter: float,
-    ) -> np.ndarray:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """σ_z (nm) before the field model's part: the spot's own (propagated from its fit
         errors where it carries them, else the calibration's at z) with the particle's model
-        error, and the amplitude reference's scatter."""
+        error, and the amplitude reference's scatter; and the fit's part alone (NaN where the
+        spots carry no fit errors)."""
         model_part = self._model_sigma("z", p, z, at)
+        fit_part = np.full(len(spots), np.nan)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
-            fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
-            z_err = np.hypot(self.noise_scale * fit_part, model_part)
+            fit_part = self.noise_scale * self._fit_part_z(params, errors, corr, p,
+                                                           np.where(in_range, s, 0.0), ref)
+            z_err = np.hypot(fit_part, model_part)
         else:
             z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
             slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
             z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
-        return z_err
+        return z_err, fit_part
 
     def _lateral_error(
         self,
@@ -721,6 +771,18 @@ class Calibration:
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = _interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
         return combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
+
+
+def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
+    """Values ``by_level`` (levels, spots) at each spot's ratio ``c_spot``: linear in log c
+    between the levels ``log_c`` (ascending), held at the ends; the lowest where c is unknown."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.log(np.asarray(c_spot, dtype=np.float64))
+    x = np.clip(np.where(np.isfinite(x), x, log_c[0]), log_c[0], log_c[-1])
+    j = np.clip(np.searchsorted(log_c, x), 1, log_c.size - 1)
+    t = (x - log_c[j - 1]) / (log_c[j] - log_c[j - 1])
+    spots = np.arange(x.size)
+    return (1 - t) * by_level[j - 1, spots] + t * by_level[j, spots]
 
 
 def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.ndarray:
