@@ -32,6 +32,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz.calibration.dimming import DIM_COLUMNS, background_ratio, shape_shift
+from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value
 from latentz.fit._model import amplitude_of
 
@@ -66,8 +67,6 @@ def dim_held_out(
     ``ratio`` = (b + readnoise²) / A) imaged like each kept particle at each plane, localized
     with its ``rank``-th nearest other kept particle's refits and inverse model (module notes);
     NaN for culled particles and where the model does not cover it."""
-    from latentz.calibration.result import _interp_rows, _row_weights
-
     local, traces, shape = cal.local, cal.traces, cal.shape
     model = local.shapes[shape]
     n, n_z = model.values.shape
@@ -91,11 +90,11 @@ def dim_held_out(
     def own(name: str) -> np.ndarray:
         return traces[name][i, k]
 
-    at = _row_weights(local.z_nm, p, z)
+    at = row_weights(local.z_nm, p, z)
 
     def neighbour(name: str) -> np.ndarray:
         """The partner particle's trace at each held-out plane's z (end values held)."""
-        return _interp_rows(local.z_nm, traces[name], p, z, at)
+        return interp_rows(local.z_nm, traces[name], p, z, at)
 
     if ratio is None:
         amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))

@@ -25,6 +25,7 @@ from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measur
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
 from latentz.calibration.reference import ReferenceField
+from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
@@ -185,7 +186,7 @@ class Calibration:
         z = np.asarray(z_nm, dtype=np.float64)
         out = {}
         for name in ("wx", "wy", "rho"):
-            out[name] = _interp_rows(self.local.z_nm, curves[name], p, z)
+            out[name] = interp_rows(self.local.z_nm, curves[name], p, z)
             out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
         return out
 
@@ -446,13 +447,13 @@ class Calibration:
     ) -> np.ndarray:
         """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
         its residual σ at that z over the square root of its planes per polynomial parameter
-        (``at``: :func:`_row_weights` of p and z, if known)."""
+        (``at``: :func:`~latentz.calibration.rows.row_weights` of p and z, if known)."""
         sigma, count, _ = self._error_model(axis)
         if axis == "z":
             order = self.local.shapes[self.shape].inverse.order
         else:
             order = (self.local.dx if axis == "x" else self.local.dy).order
-        return _interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
+        return interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
             (order + 1) / np.maximum(count[p], 1)
         )
 
@@ -535,10 +536,10 @@ class Calibration:
         from latentz.calibration.dimming import dimmest, shape_shift
 
         readnoise = self.camera.readnoise
-        at = _row_weights(self.local.z_nm, p, z)
+        at = row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
-            return _interp_rows(self.local.z_nm, self.traces[name], p, z, at)
+            return interp_rows(self.local.z_nm, self.traces[name], p, z, at)
 
         def shape_of(a, wx, wy, rho):
             return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
@@ -670,7 +671,7 @@ class Calibration:
             s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
-        at = _row_weights(self.local.z_nm, p, z)
+        at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
         out, px = spots.copy(), self.camera.pixel_size_nm
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
@@ -742,7 +743,7 @@ class Calibration:
                                                            np.where(in_range, s, 0.0), ref)
             z_err = np.hypot(fit_part, model_part)
         else:
-            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
+            z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
             slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
             z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
@@ -767,9 +768,9 @@ class Calibration:
         if f"{axis}_err" in spots:
             own = spots[f"{axis}_err"].to_numpy(float)
         else:
-            own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
+            own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
-        lack = _interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
+        lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
         return combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
 
 
@@ -803,41 +804,10 @@ def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.n
     return frame["track"].map(lookup).to_numpy(dtype=np.float64)
 
 
-def _row_weights(
-    z_grid: np.ndarray, rows: np.ndarray, z: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where :func:`_interp_rows` reads each point: the rows, the upper plane index j and the
-    weight w of plane j (1 − w of plane j − 1); computed once for every trace read at the same
-    points.
-
-    Every row of ``z_grid`` (n, n_z) is the same increasing grid of piezo planes minus one shift
-    (the particle's tilt plane), so each point interpolates on the first row after undoing its
-    row's shift, without gathering whole rows. Outside a row's grid the end value is held.
-    """
-    base = z_grid[0]
-    u = z + (base[0] - z_grid[:, 0])[rows]
-    j = np.clip(np.searchsorted(base, np.where(np.isfinite(u), u, -np.inf)), 1, base.size - 1)
-    w = np.clip((u - base[j - 1]) / (base[j] - base[j - 1]), 0.0, 1.0)
-    return rows, j, w
-
-
 def _bridge_gaps(values: np.ndarray) -> np.ndarray:
     """(n, n_z) ``values`` with each row's NaN planes given the previous finite plane's value
     (leading ones the next's); rows with no finite value stay NaN."""
     return pd.DataFrame(values.T).ffill().bfill().to_numpy().T
-
-
-def _interp_rows(
-    z_grid: np.ndarray,
-    values: np.ndarray,
-    rows: np.ndarray,
-    z: np.ndarray,
-    at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray:
-    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``;
-    ``at``: :func:`_row_weights` of these rows and z, if already known."""
-    rows, j, w = _row_weights(z_grid, rows, z) if at is None else at
-    return (1 - w) * values[rows, j - 1] + w * values[rows, j]
 
 
 def _particle_table(cal: Calibration) -> pd.DataFrame:
