@@ -16,7 +16,8 @@ of draws and ≤ 3× on all, 1σ covers 60–76 % pooled per axis and 50–85 % 
 Writes ``results/bench_validation_family.md`` after every draw (atomically).
 
 Run: ``python benchmarks/bench_validation_family.py [--draws 24] [--first 0] [--size full]``
-(``--size small`` or ``tiny`` for a reduced field, fewer particles and spots).
+(``--size small``, ``tiny`` or ``ci`` for a reduced field, fewer particles and spots; ``ci``
+also shorter stacks).
 """
 
 from __future__ import annotations

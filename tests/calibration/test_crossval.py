@@ -11,6 +11,7 @@ from latentz.calibration.crossval import (
     choose_field_model,
     crossval,
     crossval_summary,
+    lost_particles,
 )
 from latentz.calibration.errors import combine, field_sigma
 
@@ -125,3 +126,24 @@ def test_auto_calibration_round_trips_with_its_crossval(offset_calibration, tmp_
     pd.testing.assert_frame_equal(loaded.crossval_of(auto.field_model),
                                   auto.crossval_of(auto.field_model))  # fmt: skip
     pd.testing.assert_frame_equal(loaded.apply(spots), before)
+
+
+def test_a_model_that_loses_held_out_particles_is_counted_and_never_chosen():
+    """Ten held-out particles of 20 planes each; ``nearest`` predicts every plane, ``zernike``
+    errs less where it predicts but predicts only 5 planes (under half) of particles 0-3, and
+    ``curves`` predicts 12 of every particle's planes (not lost, but 60 % coverage)."""
+    rows = []
+    for particle in range(10):
+        planes = np.arange(20)
+        for kind, err, predicted in (("nearest", 30.0, 20), ("zernike", 10.0, 5 if particle < 4
+                                      else 20), ("curves", 20.0, 12)):  # fmt: skip
+            rows.append(pd.DataFrame({"model": kind, "particle": particle,
+                                      "in_range": planes < predicted, "err_x_nm": 1.0,
+                                      "err_y_nm": 1.0, "err_z_nm": err}))  # fmt: skip
+    table = pd.concat(rows, ignore_index=True)
+    lost, held_out = lost_particles(table)
+    assert held_out == 10 and lost.to_dict() == {"curves": 0, "nearest": 0, "zernike": 4}
+    summary = crossval_summary(table)
+    assert summary.loc["zernike", "rmse_z_nm"] < summary.loc["nearest", "rmse_z_nm"]
+    assert choose_field_model(summary) == "nearest"  # zernike loses 4, curves covers 60 %
+    assert choose_field_model(summary.drop(index="zernike"), coverage=0.5) == "curves"

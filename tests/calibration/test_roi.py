@@ -1,6 +1,8 @@
 """The automatic ROI of `calibrate(roi_size=None)`: its candidates, the bound the particles'
 spacing sets, and the choice between candidates (:mod:`latentz.calibration.roi`)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -91,3 +93,64 @@ def test_a_roi_as_good_near_focus_wins_by_its_range():
 
 def test_the_smaller_roi_wins_a_tie():
     assert choose_roi({19: _score(30.0, 40.0), 15: _score(30.0, 40.0)})[0] == 15
+
+
+def test_frame_background_is_the_sparse_stacks_background():
+    from latentz.calibration.roi import frame_background
+    from latentz.camera import Camera
+
+    rng = np.random.default_rng(0)
+    camera = Camera(offset=100.0, gain=0.5, readnoise=1.5)
+    levels = np.array([5.0, 20.0, 80.0])  # photons per pixel, one per plane
+    yy, xx = np.mgrid[:96, :96]
+    spots = sum(2000 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 2.0**2))
+                for cx, cy in rng.uniform(10, 86, (6, 2)))  # fmt: skip
+    photons = rng.poisson(levels[:, None, None] + spots[None])
+    got = frame_background([camera.to_adu(photons)], camera)[0]
+    # the median of integer Poisson counts lies within 1 photon of the mean; the spots hold
+    # ~5 % of the pixels and move it by well under that
+    np.testing.assert_allclose(got, levels, atol=1.0)
+
+
+def test_emitters_from_the_particles_images_err_at_least_as_much_as_their_bound():
+    """On latentz's simulator (12 particles, ±1 µm), an emitter made from a particle's image is
+    localized no better than the Cramér–Rao bound of such an emitter near focus (within three
+    standard errors of an RMS from n samples, 1/sqrt(2n)), and no worse than twice that bound in
+    quadrature with the bright images' own held-out error; dimmer emitters err more."""
+    from dataclasses import replace
+
+    from latentz import simulate as sim
+    from latentz.calibration import calibrate
+    from latentz.calibration.precision import crlb_sigma_z
+    from latentz.calibration.roi import frame_background
+    from latentz.calibration.roi_emitters import emitter_errors
+    from latentz.calibration.shape_choice import _cross_validated
+
+    data = sim.calibration_dataset(n_particles=12, z_nm=np.linspace(-1000, 1000, 21), seed=3,
+                                   n_stage_positions=1, frame_shape=(160, 160),
+                                   min_spacing_px=30.0)  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate(list(data.stacks), data.z_nm, camera=data.camera, roi_size=13,
+                        field_model="nearest")  # fmt: skip
+    background = frame_background(data.stacks, data.camera)
+    traces = replace(cal.traces, data={**cal.traces.data,
+                                       "background": background[cal.traces.stack]})  # fmt: skip
+    kept, near = cal.kept, slice(6, 15)  # the planes within ±400 nm
+    use = np.zeros(len(cal.traces), bool)
+    use[kept] = True
+    bright = _cross_validated(cal.local, cal.shape, use, cal.positions)[kept][:, near]
+    rms = {}
+    for photons in (1e3, 1e4, 1e5):
+        err = emitter_errors(cal, data.stacks, data.camera, background, photons)[kept][:, near]
+        rms[photons] = float(np.sqrt(np.mean(err[np.isfinite(err)] ** 2)))
+        if photons == 1e3:
+            continue
+        bound = crlb_sigma_z(cal.local, traces, cal.shape, photons, roi_size=13,
+                             readnoise=data.camera.readnoise)[kept][:, near]  # fmt: skip
+        n = int(np.isfinite(err).sum())
+        crlb = float(np.sqrt(np.nanmean(bound**2)))
+        assert n >= 0.7 * err.size
+        assert rms[photons] >= crlb * (1 - 3 / np.sqrt(2 * n))
+        assert rms[photons] <= 2 * np.hypot(crlb, np.sqrt(np.nanmean(bright**2)))
+    assert rms[1e3] > rms[1e4] > rms[1e5]

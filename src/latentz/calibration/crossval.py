@@ -23,8 +23,10 @@ planes of the total error of a typical emitter, ``sqrt(σ_fit² + err_z²)`` (``
 σ_fit the Cramér–Rao σ_z of an emitter of :data:`TYPICAL_PHOTONS` photons imaged like the
 held-out particle at that plane, :func:`~latentz.calibration.precision.crlb_sigma_z`). It takes
 the best among the models no worse than ``nearest`` in that, in lateral RMSE and in coverage (the
-fraction of held-out planes it predicts); ``nearest`` is always eligible, so the choice is never
-worse than it. A table without σ_fit is ranked by the z RMSE.
+fraction of held-out planes it predicts), and that loses no held-out particle (predicts at least
+half the planes ``nearest`` predicts of each); ``nearest`` is always eligible, so the choice is
+never worse than it. A model that loses particles is named, with the count, in a warning. A
+table without σ_fit is ranked by the z RMSE.
 """
 
 from __future__ import annotations
@@ -41,9 +43,9 @@ from scipy.spatial import cKDTree
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["CROSSVAL_COLUMNS", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS", "crossval",
-           "choose_field_model", "crossval_summary", "emitter_sigma_z", "predict",
-           "resolve_auto"]  # fmt: skip
+__all__ = ["CROSSVAL_COLUMNS", "LOST_SHARE", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS",
+           "crossval", "choose_field_model", "crossval_summary", "emitter_sigma_z",
+           "lost_particles", "predict", "resolve_auto"]  # fmt: skip
 
 CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
                     "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
@@ -54,6 +56,10 @@ _SMOOTH_PLANES = 7
 
 #: Fewer kept particles than this leave no field to model: "auto" takes ``nearest``.
 MIN_FIELD_PARTICLES = 12
+
+#: A held-out particle is lost by a model that predicts fewer than this share of the planes
+#: that ``nearest`` predicts of it.
+LOST_SHARE = 0.5
 
 #: Brightness of the typical emitter that ranks the models: the upper end of single molecules
 #: (100-10,000 photons), where the field model's error is not yet hidden by the fit's precision.
@@ -198,7 +204,9 @@ def crossval_summary(table: pd.DataFrame, sigma_fit_nm: np.ndarray | None = None
     """Per model: ``rmse_z_nm``, ``rmse_x_nm``, ``rmse_y_nm``, ``rmse_xy_nm`` (x and y pooled)
     of the predicted planes, their fraction ``in_range`` and the count ``n``; with
     ``sigma_fit_nm`` (one per row, :func:`emitter_sigma_z`) also ``typical_z_nm``, the mean of
-    ``sqrt(σ_fit² + err_z²)`` over the predicted planes where σ_fit is known."""
+    ``sqrt(σ_fit² + err_z²)`` over the predicted planes where σ_fit is known; with a
+    ``particle`` column, ``lost`` (:func:`lost_particles`) of the ``held_out`` particles that
+    ``nearest`` predicts."""
     rows = {}
     table = table.assign(sigma_fit=np.nan if sigma_fit_nm is None else sigma_fit_nm)
     for kind, part in table.groupby("model", sort=False):
@@ -215,13 +223,27 @@ def crossval_summary(table: pd.DataFrame, sigma_fit_nm: np.ndarray | None = None
             "in_range": float(part["in_range"].mean()),
             "n": len(used),
         }
-    return pd.DataFrame.from_dict(rows, orient="index").rename_axis("model")
+    summary = pd.DataFrame.from_dict(rows, orient="index").rename_axis("model")
+    if "particle" in table and "nearest" in summary.index:
+        summary["lost"], summary["held_out"] = lost_particles(table)
+    return summary
+
+
+def lost_particles(table: pd.DataFrame) -> tuple[pd.Series, int]:
+    """Per model of a :func:`crossval` table, how many held-out particles it loses (predicts
+    fewer than :data:`LOST_SHARE` of the planes ``nearest`` predicts of them), and how many
+    particles ``nearest`` predicts at all."""
+    counts = table.groupby(["model", "particle"])["in_range"].sum().unstack("model", fill_value=0)
+    base = counts["nearest"]
+    held = base > 0
+    lost = (counts[held].lt(LOST_SHARE * base[held], axis=0)).sum(axis=0)
+    return lost.astype(int), int(held.sum())
 
 
 def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
     """The model with the smallest typical z error (``typical_z_nm``; the z RMSE where that is
     not known) among those no worse than ``nearest`` in it and in lateral RMSE, that predict at
-    least ``coverage`` x as many held-out planes as it."""
+    least ``coverage`` x as many held-out planes as it and lose no held-out particle."""
     base = summary.loc["nearest"]
     known = "typical_z_nm" in summary and np.isfinite(summary["typical_z_nm"]).all()
     rank = "typical_z_nm" if known else "rmse_z_nm"
@@ -229,6 +251,7 @@ def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
         (summary[rank] <= base[rank])
         & (summary["rmse_xy_nm"] <= base["rmse_xy_nm"])
         & (summary["in_range"] >= coverage * base["in_range"])
+        & (summary["lost"] == 0 if "lost" in summary else True)
     ]
     if eligible.empty:
         return "nearest"
@@ -247,4 +270,14 @@ def resolve_auto(cal: Calibration) -> str:
         )
         return "nearest"
     table = cal.crossval
-    return choose_field_model(crossval_summary(table, emitter_sigma_z(cal, table)))
+    summary = crossval_summary(table, emitter_sigma_z(cal, table))
+    losing = summary[summary["lost"] > 0] if "lost" in summary else summary.iloc[:0]
+    for model, row in losing.iterrows():
+        warnings.warn(
+            f"field_model='auto': {model!r} loses {row['lost']} of {row['held_out']} held-out "
+            f"calibration particles (it predicts under half the planes 'nearest' predicts of "
+            f"them), so it is not chosen.",
+            UserWarning,
+            stacklevel=3,
+        )
+    return choose_field_model(summary)

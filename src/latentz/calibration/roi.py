@@ -8,26 +8,35 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
 
 1. **Candidates** (:func:`candidate_rois`): the smallest odd ROI that holds 95 % of an
    in-focus spot (:func:`roi_for_width` of the particles' narrowest width), then every
-   :data:`ROI_STEP` pixels, :data:`N_CANDIDATES` in all, none larger than the images allow
-   (:func:`roi_limit`) nor than the particles' spacing (:func:`spacing_limit`: at most a
-   quarter of them with a neighbour inside their ROI).
-2. **Score** (:func:`expected_errors`): each candidate is calibrated, and on every plane of the
-   stack the expected z error of typical emitters is taken over its kept particles: the
-   cross-validated error (each particle's images localized with the nearest *other*
-   particle's inverse model, as :mod:`~latentz.calibration.shape_choice` does), in quadrature
-   with the Cramér–Rao σ_z of an emitter of 10³ and of 10⁴ photons imaged like the particle in
-   that ROI, and, for emitters like the calibration particles, the cross-validated error
-   alone. Where a particle's plane is outside its usable range
-   (:attr:`~latentz.calibration.Calibration.usable_planes`) the error is that of a guess
-   anywhere in the stack (span/√12), as is any error above it.
+   :data:`ROI_STEP` pixels, :data:`N_CANDIDATES` in all (so the ROI cannot run away from the
+   in-focus spot), none larger than the images allow (:func:`roi_limit`) nor than the
+   particles' spacing (:func:`spacing_limit`: at most a quarter of them with a neighbour
+   inside their ROI).
+2. **Score** (:func:`expected_errors`): each candidate is calibrated with each particle's own
+   models, and on every plane of the stack the expected z error of typical emitters is taken
+   over its kept particles: for emitters of 10³ and of 10⁴ photons, that of the particle's own
+   image made into such an emitter over the images' background (:func:`frame_background`: a
+   bright particle's fitted background holds its own halo in a small ROI, a dim emitter's
+   does not), fitted as ``localize`` fits and localized by ``apply`` at the nearest other
+   particle (:func:`~latentz.calibration.roi_emitters.emitter_errors`); for emitters like the
+   calibration particles, the cross-validated error of the bright image (each particle's
+   images localized with the nearest *other* particle's inverse model, as
+   :mod:`~latentz.calibration.shape_choice` does). Where a particle's plane is outside its
+   usable range (:attr:`~latentz.calibration.Calibration.usable_planes`) it is not counted; an
+   emitter not localized in range, and any error above a guess anywhere in the stack
+   (span/√12), counts as a guess.
 3. **Choice** (:func:`choose_roi`): ``core_nm`` is the RMS of those errors over the *core*
-   planes (where every candidate measures at least half its kept particles: near focus);
-   ``range_nm`` the same over every plane any candidate measures. Candidates within
-   :data:`CORE_TOLERANCE` of the best ``core_nm`` are eligible, and the one with the smallest
-   ``range_nm`` among them is chosen (the smaller ROI on a tie). So a larger ROI that measures
-   farther from focus is taken only where it costs nothing near focus, and a shorter usable z
-   range is preferred to lost precision near focus. A candidate whose calibration fails is
-   skipped, so the choice never fails where a smaller ROI works.
+   planes (where every candidate measures: at least half its kept particles usable, and some
+   kind of emitter localized to better than half a guess; near focus); ``range_nm`` the same
+   over every plane any candidate measures; each has a standard error over the particles
+   (over the planes for a lone particle). A candidate is *as good as* the best when it
+   exceeds it by no more than their noise (the standard errors in quadrature) or
+   :data:`CORE_TOLERANCE`, whichever is larger. The candidates as good as the best near focus
+   are eligible, and the smallest of them as good as the best of them over the range is
+   chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
+   nothing near focus, and a shorter usable z range is preferred to lost precision near
+   focus. A candidate whose calibration fails is skipped, so the choice never fails where a
+   smaller ROI works.
 """
 
 from __future__ import annotations
@@ -38,14 +47,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import erfinv
 
-from latentz.calibration.dim_crossval import dim_held_out
-from latentz.calibration.precision import crlb_sigma_z
+from latentz.calibration.roi_emitters import emitter_errors
 from latentz.calibration.shape import uses_amplitude
 from latentz.calibration.shape_choice import _cross_validated
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
     from latentz.calibration.traces import Traces
+    from latentz.camera import Camera
 
 __all__ = [
     "CORE_TOLERANCE",
@@ -59,6 +68,7 @@ __all__ = [
     "choose_roi",
     "expected_errors",
     "focus_width_px",
+    "frame_background",
     "roi_for_width",
     "roi_limit",
     "spacing_limit",
@@ -72,7 +82,7 @@ HALF_WIDTH_PER_SIGMA = float(math.sqrt(2.0) * erfinv(math.sqrt(PHOTON_FRACTION))
 MIN_ROI = 7
 #: Pixels between candidate ROIs, and how many there are at most.
 ROI_STEP = 4
-N_CANDIDATES = 5
+N_CANDIDATES = 3
 #: Most fraction of the particles allowed a neighbour inside their ROI (:func:`spacing_limit`).
 CROWDED_FRACTION = 0.25
 #: Photon counts of the typical single emitters the ROI is judged for.
@@ -136,13 +146,25 @@ def candidate_rois(width_px: float, upper: int) -> list[int]:
     return [r for r in range(first, first + ROI_STEP * N_CANDIDATES, ROI_STEP) if r <= upper]
 
 
-def expected_errors(cal: Calibration) -> dict[str, np.ndarray]:
+def frame_background(stacks: list[np.ndarray], camera: Camera) -> np.ndarray:
+    """(n_stacks, n_z) background (photons per pixel) of each plane of each stack: the median
+    pixel of the plane in photons, which sparse particles leave to the background."""
+    return np.array([camera.to_photons(np.median(stack, axis=(1, 2))[:, None, None])[:, 0, 0]
+                     for stack in stacks])  # fmt: skip
+
+
+def expected_errors(
+    cal: Calibration, stacks: list[np.ndarray], camera: Camera, background: np.ndarray
+) -> dict[str, np.ndarray]:
     """Expected z error (nm) of typical emitters on every plane of ``cal``'s stack (module
-    notes, step 2): ``errors`` (n_kinds, n_z), one row per photon count of
-    :data:`EMITTER_PHOTONS` and a last for emitters like the calibration particles, RMS over
-    the kept particles; ``measured`` (n_z,) the fraction of them whose plane is usable;
-    ``guess_nm`` the error of a guess; ``usable_nm`` the median over the kept particles of
-    their usable range's ends (tilt-corrected z)."""
+    notes, step 2), from the calibration ``stacks`` (ADU) read by ``camera`` and their
+    ``background`` ((n_stacks, n_z) photons per pixel, :func:`frame_background`): ``errors``
+    (n_kinds, n_z), one row per photon count of :data:`EMITTER_PHOTONS` and a last for emitters
+    like the calibration particles, RMS over the kept particles; ``particle_sq`` (n_kinds,
+    n_kept, n_z) each kept particle's capped squared error (NaN where unmeasured), for the
+    standard errors of :func:`choose_roi`; ``measured`` (n_z,) the fraction of them whose
+    plane is usable; ``guess_nm`` the error of a guess; ``usable_nm`` the median over the kept
+    particles of their usable range's ends (tilt-corrected z)."""
     local, shape, kept = cal.local, cal.shape, cal.kept
     use = np.zeros(cal.culled.size, bool)
     use[kept] = True
@@ -150,24 +172,23 @@ def expected_errors(cal: Calibration) -> dict[str, np.ndarray]:
     cv = _cross_validated(local, shape, use, cal.positions, reference=uses_amplitude(shape))
     z = cal.traces.z_nm
     guess = float(np.ptp(z)) / np.sqrt(12.0)
-    kinds = [
-        np.hypot(dim_held_out(cal, photons),
-                 crlb_sigma_z(local, cal.traces, shape, photons, roi_size=cal.roi_size,
-                              readnoise=cal.camera.readnoise))  # fmt: skip
-        for photons in EMITTER_PHOTONS
-    ]
+    usable = ~np.isnan(cv)
+    kinds = [np.where(usable, emitter_errors(cal, stacks, camera, background, photons), np.nan)
+             for photons in EMITTER_PHOTONS]  # fmt: skip
     kinds.append(np.abs(cv))
-    errors = []
+    errors, squares = [], []
     for error in kinds:
-        measured = np.isfinite(error)[kept]
-        capped = np.where(measured, np.minimum(error[kept], guess), 0.0)
+        measured = ~np.isnan(error[kept])  # inf: not localized, a guess
+        capped = np.where(measured, np.minimum(np.abs(error[kept]), guess), 0.0)
         count = measured.sum(axis=0)
         rms = np.sqrt(np.sum(capped**2, axis=0) / np.maximum(count, 1))
         errors.append(np.where(count > 0, rms, guess))  # none measured: a guess
+        squares.append(np.where(measured, capped**2, np.nan))
     usable_nm = np.nanmedian(cal.usable_z_nm[kept], axis=0) if kept.size else [np.nan] * 2
     return {
         "errors": np.array(errors),
-        "measured": np.isfinite(cv[kept]).mean(axis=0) if kept.size else np.zeros(z.size),
+        "particle_sq": np.array(squares),
+        "measured": usable[kept].mean(axis=0) if kept.size else np.zeros(z.size),
         "guess_nm": guess,
         "usable_nm": np.asarray(usable_nm, dtype=np.float64),
     }
@@ -176,46 +197,79 @@ def expected_errors(cal: Calibration) -> dict[str, np.ndarray]:
 def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     """The ROI to calibrate with, from :func:`expected_errors` of each candidate that
     calibrated (module notes, step 3), and a JSON-able record of why: ``chosen``, a one-line
-    ``reason`` and each candidate's ``core_nm``, ``range_nm``, ``usable_nm`` and ``kept``."""
+    ``reason`` and each candidate's ``core_nm`` and ``range_nm`` with their standard errors
+    (``core_se_nm``, ``range_se_nm``), ``usable_nm`` and ``kept``."""
     rois = sorted(scores)
-    measured = np.array([scores[r]["measured"] for r in rois])
-    core = np.all(measured >= 0.5, axis=0)
+    measured = np.array([_measures(scores[r]) for r in rois])
+    core = np.all(measured, axis=0)
     if not core.any():  # no plane every candidate measures: judge on each one's own
-        core = np.any(measured >= 0.5, axis=0)
-    union = np.any(measured >= 0.5, axis=0)
-
-    def rms(r: int, planes: np.ndarray) -> float:
-        """RMS of candidate ``r``'s errors over ``planes``, a guess's where it measures fewer
-        than half its particles."""
-        if not planes.any():
-            return np.inf
-        own = scores[r]["measured"] >= 0.5
-        errors = np.where(own, scores[r]["errors"], scores[r]["guess_nm"])
-        return float(np.sqrt(np.mean(errors[:, planes] ** 2)))
-
-    table = {
-        r: {
-            "core_nm": rms(r, core),
-            "range_nm": rms(r, union),
-            "usable_nm": [float(v) for v in scores[r]["usable_nm"]],
-            "kept": int(scores[r].get("kept", 0)),
-        }
-        for r in rois
-    }
-    best_core = min(t["core_nm"] for t in table.values())
-    eligible = [r for r in rois if table[r]["core_nm"] <= (1 + CORE_TOLERANCE) * best_core]
-    eligible = eligible or rois  # no candidate measures anywhere: judged on range and size
-    chosen = min(eligible, key=lambda r: (table[r]["range_nm"], r))
+        core = np.any(measured, axis=0)
+    union = np.any(measured, axis=0)
+    table = {}
+    for r in rois:
+        table[r] = {"usable_nm": [float(v) for v in scores[r]["usable_nm"]],
+                    "kept": int(scores[r].get("kept", 0))}  # fmt: skip
+        for name, planes in (("core", core), ("range", union)):
+            value, se = _rms_over(scores[r], planes)
+            table[r] |= {f"{name}_nm": value, f"{name}_se_nm": se}
+    eligible = _as_good(table, rois, "core") or rois  # none measures: judged on range and size
+    chosen = min(_as_good(table, eligible, "range") or eligible)
     row = table[chosen]
     lo, hi = row["usable_nm"]
     reason = (
-        f"roi_size={chosen}: the best expected z error of 1e3-1e4-photon emitters and of "
-        f"particles like the calibration's among ROIs {', '.join(map(str, rois))} px "
-        f"({row['core_nm']:.0f} nm near focus, {row['range_nm']:.0f} nm over the stack; "
-        f"usable z {lo:.0f} to {hi:.0f} nm)"
+        f"roi_size={chosen}: the smallest with the best expected z error of 1e3-1e4-photon "
+        f"emitters and of particles like the calibration's among ROIs "
+        f"{', '.join(map(str, rois))} px ({row['core_nm']:.0f} nm near focus, "
+        f"{row['range_nm']:.0f} nm over the stack; usable z {lo:.0f} to {hi:.0f} nm)"
     )
     return chosen, {
         "chosen": chosen,
         "reason": reason,
         "candidates": {str(r): t for r, t in table.items()},
     }
+
+
+def _measures(score: dict[str, Any]) -> np.ndarray:
+    """(n_z,) the planes where a candidate measures: at least half its kept particles usable,
+    and some kind of emitter localized to better than half a guess."""
+    best = np.min(score["errors"], axis=0)
+    return (score["measured"] >= 0.5) & (best < score["guess_nm"] / 2)
+
+
+def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
+    """RMS (nm) of one candidate's errors over ``planes`` (a guess's where it measures fewer
+    than half its particles), and its standard error over the particles (delta method on
+    each particle's mean square; over the planes for a lone particle; 0 without
+    ``particle_sq``)."""
+    if not planes.any():
+        return np.inf, 0.0
+    own = score["measured"] >= 0.5
+    errors = np.where(own, score["errors"], score["guess_nm"])
+    value = float(np.sqrt(np.mean(errors[:, planes] ** 2)))
+    squares = score.get("particle_sq")
+    if squares is None or squares.shape[1] == 0:
+        return value, 0.0
+    squares = np.where(own, squares, score["guess_nm"] ** 2)[:, :, planes]
+    samples = np.nanmean(np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1), axis=1)
+    if np.isfinite(samples).sum() < 2:  # a lone particle: its planes' noise draws instead
+        samples = np.nanmean(squares, axis=(0, 1))
+    samples = samples[np.isfinite(samples)]
+    if samples.size < 2:
+        return value, 0.0
+    se_square = float(np.std(samples, ddof=1) / np.sqrt(samples.size))
+    return value, se_square / (2 * value) if value > 0 else 0.0
+
+
+def _as_good(table: dict[int, dict[str, Any]], rois: list[int], name: str) -> list[int]:
+    """The ``rois`` whose ``{name}_nm`` exceeds the best by no more than their noise (the two
+    standard errors in quadrature) or :data:`CORE_TOLERANCE` of the best, whichever is larger."""
+    finite = [r for r in rois if np.isfinite(table[r][f"{name}_nm"])]
+    if not finite:
+        return []
+    best = min(finite, key=lambda r: table[r][f"{name}_nm"])
+    value, se = table[best][f"{name}_nm"], table[best][f"{name}_se_nm"]
+    return [
+        r for r in finite
+        if table[r][f"{name}_nm"] - value
+        <= max(CORE_TOLERANCE * value, math.hypot(se, table[r][f"{name}_se_nm"]))
+    ]  # fmt: skip

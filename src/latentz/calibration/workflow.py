@@ -32,6 +32,7 @@ from latentz.calibration.roi import (
     choose_roi,
     expected_errors,
     focus_width_px,
+    frame_background,
     roi_limit,
     spacing_limit,
 )
@@ -179,25 +180,29 @@ def calibrate(
     if roi_size is not None:
         roi_size = _check_roi_size(roi_size, loaded, limit, explicit=positions is not None)
 
-    def once(roi: int) -> Calibration:
-        """Traces of every particle in a ``roi``-pixel ROI, then the calibration from them."""
-        traces = extract_traces(
-            loaded,
-            z,
-            camera=camera,
-            roi_size=roi,
-            positions=positions,
-            stage_offsets_px=stage_offsets_px,
-            threshold=threshold,
-            method=method,
-            progress=progress,
-            device=device,
-        )
+    traces_at: dict[int, Traces] = {}
+
+    def once(roi: int, model: str = field_model) -> Calibration:
+        """Traces of every particle in a ``roi``-pixel ROI (fitted once per ROI), then the
+        calibration from them with field model ``model``."""
+        if roi not in traces_at:
+            traces_at[roi] = extract_traces(
+                loaded,
+                z,
+                camera=camera,
+                roi_size=roi,
+                positions=positions,
+                stage_offsets_px=stage_offsets_px,
+                threshold=threshold,
+                method=method,
+                progress=progress,
+                device=device,
+            )
         return calibrate_traces(
-            traces,
+            traces_at[roi],
             camera=camera,
             shape=shape,
-            field_model=field_model,
+            field_model=model,
             n_terms=n_terms,
             roi_size=roi,
             method=method,
@@ -209,7 +214,11 @@ def calibrate(
         cal, caught = run(roi_size)
         _say(caught)
         return cal
-    return _calibrate_roi(run, min(_FIRST_ROI, limit), limit)
+    background = frame_background(loaded, camera)
+    judge = functools.partial(expected_errors, stacks=loaded, camera=camera, background=background)
+    candidate = functools.partial(_recorded, functools.partial(once, model="nearest"))
+    final = None if field_model == "nearest" else run
+    return _calibrate_roi(candidate, min(_FIRST_ROI, limit), limit, judge, final)
 
 
 def _load_stacks(stacks: Any, z: np.ndarray, camera: Camera) -> tuple[list[np.ndarray], np.ndarray]:
@@ -278,12 +287,15 @@ def _say(caught: list) -> None:
         warnings.warn(message.message, message.category, stacklevel=4)
 
 
-def _calibrate_roi(run, first: int, limit: int) -> Calibration:
-    """Calibrate at each candidate ROI (:func:`~latentz.calibration.roi.candidate_rois`, from
-    the in-focus width of a first calibration at ``first`` px, never above ``limit`` nor the
-    particles' spacing) and keep the one whose calibration localizes typical emitters best
-    (:func:`~latentz.calibration.roi.choose_roi`); ``cal.options["roi_choice"]`` says why.
-    A candidate that fails is skipped; only when every one fails is its error raised."""
+def _calibrate_roi(run, first: int, limit: int, judge, final=None) -> Calibration:
+    """Calibrate at each candidate ROI with ``run`` (:func:`~latentz.calibration.roi.
+    candidate_rois`, from the in-focus width of a first calibration at ``first`` px, never
+    above ``limit`` nor the particles' spacing) and keep the one whose calibration localizes
+    typical emitters best (``judge``: :func:`~latentz.calibration.roi.expected_errors` of a
+    calibration; :func:`~latentz.calibration.roi.choose_roi`), calibrated again by ``final``
+    where given (the requested field model; the candidates use each particle's own models);
+    ``cal.options["roi_choice"]`` says why. A candidate that fails is skipped; only when every
+    one fails is its error raised."""
     runs: dict[int, tuple[Calibration, list]] = {}
     failures: dict[int, tuple[Exception, list]] = {}
 
@@ -309,10 +321,13 @@ def _calibrate_roi(run, first: int, limit: int) -> Calibration:
         if roi not in runs and roi not in failures:
             attempt(roi)
     scored = {r: run_ for r, run_ in runs.items() if r <= upper} or runs
-    scores = {r: {**expected_errors(cal), "kept": cal.kept.size} for r, (cal, _) in scored.items()}
+    scores = {
+        r: {**judge(cal), "kept": cal.kept.size}
+        for r, (cal, _) in scored.items()
+    }
     chosen, record = choose_roi(scores)
     record["failed"] = {str(r): str(e) for r, (e, _) in failures.items()}
-    cal, caught = runs[chosen]
+    cal, caught = runs[chosen] if final is None else final(chosen)
     _say(caught)
     cal.options["roi_choice"] = record
     cal.options["roi_size_reason"] = record["reason"]

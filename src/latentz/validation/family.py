@@ -36,14 +36,17 @@ __all__ = ["FAMILY_SIZES", "MEDIA", "Draw", "draw_microscope", "family_data"]
 MEDIA = {"air": (1.0, 0.4, 0.95), "water": (1.333, 0.8, 1.27), "oil": (1.518, 1.1, 1.49)}
 
 #: Sizes of a family member: field side (px), stacks, the range of each stack's grid side, test
-#: emitters and frames, and the rendered patch (px).
+#: emitters and frames, the rendered patch (px), and the bounds (nm) the drawn stack half-range
+#: and step are held to (``ci``: short stacks for a family that runs in CI).
 FAMILY_SIZES = {
     "full": {"field_px": 256, "n_stacks": 2, "grid": (7, 9), "n_test": 60, "n_frames": 10,
-             "patch_px": 31},
+             "patch_px": 31, "z_half_nm": (800.0, 3000.0), "z_step_nm": (20.0, 100.0)},
     "small": {"field_px": 128, "n_stacks": 2, "grid": (3, 5), "n_test": 16, "n_frames": 6,
-              "patch_px": 27},
+              "patch_px": 27, "z_half_nm": (800.0, 3000.0), "z_step_nm": (20.0, 100.0)},
     "tiny": {"field_px": 96, "n_stacks": 2, "grid": (3, 3), "n_test": 9, "n_frames": 5,
-             "patch_px": 23},
+             "patch_px": 23, "z_half_nm": (800.0, 3000.0), "z_step_nm": (20.0, 100.0)},
+    "ci": {"field_px": 72, "n_stacks": 2, "grid": (3, 3), "n_test": 6, "n_frames": 4,
+           "patch_px": 19, "z_half_nm": (600.0, 1000.0), "z_step_nm": (60.0, 100.0)},
 }  # fmt: skip
 
 VECTORIAL_NA = 0.9
@@ -54,6 +57,7 @@ class Draw:
     """One random microscope and sample (lengths in nm; see the module notes)."""
 
     seed: int
+    size: str
     medium: str
     na: float
     wavelength_nm: float
@@ -118,8 +122,11 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
 
-def draw_microscope(seed: int) -> Draw:
-    """Draw one microscope and sample (module notes) from ``seed``."""
+def draw_microscope(seed: int, size: str = "full") -> Draw:
+    """Draw one microscope and sample (module notes) from ``seed``, to be imaged at ``size``
+    (:data:`FAMILY_SIZES`; its stack bounds clip the drawn half-range and step)."""
+    _check_size(size)
+    z_bounds, step_bounds = FAMILY_SIZES[size]["z_half_nm"], FAMILY_SIZES[size]["z_step_nm"]
     rng = np.random.default_rng([28, seed])
     medium = str(rng.choice(list(MEDIA)))
     n, na_lo, na_hi = MEDIA[medium]
@@ -135,11 +142,12 @@ def draw_microscope(seed: int) -> Draw:
     std = {mode: float(rng.uniform(2.0, 10.0)) for mode in MODES}
     std["spherical"] /= 2
     depth = wavelength * n / na**2
-    z_half = float(np.clip(rng.uniform(2.0, 4.0) * depth, 800.0, 3000.0))
-    step = float(np.clip(np.round(depth * rng.uniform(0.04, 0.12), -1), 20.0, 100.0))
+    z_half = float(np.clip(rng.uniform(2.0, 4.0) * depth, *z_bounds))
+    step = float(np.clip(np.round(depth * rng.uniform(0.04, 0.12), -1), *step_bounds))
     lo = 10 ** rng.uniform(2.7, 3.5)
     return Draw(
         seed=seed,
+        size=size,
         medium=medium,
         na=na,
         wavelength_nm=wavelength,
@@ -159,10 +167,16 @@ def draw_microscope(seed: int) -> Draw:
     )
 
 
-def family_data(draw: Draw, size: str = "full") -> ValidationData:
-    """Calibration stacks and test frames of ``draw`` at one of :data:`FAMILY_SIZES`."""
+def _check_size(size: str) -> None:
     if size not in FAMILY_SIZES:
         raise ValueError(f"Expected `size` to be one of {tuple(FAMILY_SIZES)}, got {size!r}.")
+
+
+def family_data(draw: Draw, size: str | None = None) -> ValidationData:
+    """Calibration stacks and test frames of ``draw`` at one of :data:`FAMILY_SIZES` (the
+    draw's own if None)."""
+    size = draw.size if size is None else size
+    _check_size(size)
     p = FAMILY_SIZES[size]
     lo, hi = p["grid"]
     layout = {**p, "grid": int(round(lo + draw.grid_fraction * (hi - lo))),

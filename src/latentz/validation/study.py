@@ -22,13 +22,13 @@ def run_defaults(seed: int, size: str = "full") -> dict:
     from latentz.calibration import calibrate
 
     start = time.perf_counter()
-    draw = draw_microscope(seed)
+    draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
            "px nm": round(draw.pixel_size_nm), "λ nm": round(draw.wavelength_nm),
            "form": draw.form, "astig nm": round(draw.astigmatism_nm),
            "bead nm": round(draw.bead_nm), "z ± nm": round(draw.z_half_nm),
            "step nm": draw.z_step_nm}  # fmt: skip
-    data = family_data(draw, size)
+    data = family_data(draw)
     row["render s"] = round(time.perf_counter() - start)
     try:
         cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
