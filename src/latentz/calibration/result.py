@@ -695,15 +695,20 @@ class Calibration:
         it: the field model's cross-validated error with the dimming correction's transfer
         (at the spot's background ratio c), or, where larger, the error of held-out particles
         seen as emitters of that c and localized by neighbours as far away as the spot is from
-        its particle (:meth:`_pair_sigma`; the cross-validation holds particles out only at
-        their spacing, and a field model that extrapolates errs more beyond it)."""
+        its particle (:meth:`_pair_sigma`). That is ``nearest``'s error: for another field
+        model it counts only beyond the distances its cross-validation held out (above their
+        90th percentile), where the model extrapolates."""
         field = self._field_sigma("z", z, distance)
         c_spot = None
         if "background" in spots.columns and "dim0_wx" in self.traces.data:
             c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
                                       self.camera.readnoise)  # fmt: skip
             field = combine(field, self._transfer_sigma(z, c_spot))
-        return np.fmax(field, self._pair_sigma(z, c_spot, distance))
+        pair = np.fmax(field, self._pair_sigma(z, c_spot, distance))
+        if self.field_model == "nearest":
+            return pair
+        held = self.crossval_of(self.field_model)["distance_px"].to_numpy()
+        return np.where(distance > np.quantile(held, 0.9), pair, field)
 
     def _amplitude_reference(
         self, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
