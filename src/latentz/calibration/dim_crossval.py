@@ -154,19 +154,29 @@ def pair_table(cal: Calibration) -> pd.DataFrame:
     refits) and localized by each of its :data:`PAIR_RANKS` nearest other particles
     (:func:`dim_held_out`). Columns: ``c``, ``model`` ("pairs"), ``particle``, ``z_nm``,
     ``distance_px`` (to the particle that localized it), ``err_z_nm`` and ``in_range`` (the
-    error is known), the columns :func:`~latentz.calibration.errors.field_sigma` reads."""
+    error is known, at a plane of the held-out particle's monotonic range, as
+    :func:`~latentz.calibration.crossval.crossval` holds out, and its z within the span that
+    particle was imaged over, as :meth:`~latentz.calibration.Calibration.apply` requires), the
+    columns :func:`~latentz.calibration.errors.field_sigma` reads."""
     from latentz.calibration.dimming import LEVELS
 
     refits = all(name in cal.traces.data for name in DIM_COLUMNS)
     n_z = cal.local.z_nm.shape[1]
     frames = []
     for rank in PAIR_RANKS:
-        rows, _, distance = _partners(cal, rank)
+        rows, partners, distance = _partners(cal, rank)
+        z = cal.local.z_nm[rows]
+        lo, hi = (np.repeat(cal.z_span_nm[partners, k], n_z).reshape(z.shape) for k in (0, 1))
+        own = cal.local.shapes[cal.shape].z_range[rows]  # its monotonic range, as crossval's
+        planes = (z >= own[:, :1]) & (z <= own[:, 1:])
         for c in (LEVELS if refits else (0.0,)) if rows.size else ():
-            err = dim_held_out(cal, ratio=c, rank=rank)[rows].ravel()
+            err = dim_held_out(cal, ratio=c, rank=rank)[rows]
+            with np.errstate(invalid="ignore"):
+                known = planes & (z + err >= lo) & (z + err <= hi)
+            err = np.where(known, err, np.nan).ravel()
             frames.append(pd.DataFrame({
                 "c": c, "model": "pairs", "particle": np.repeat(rows, n_z),
-                "z_nm": cal.local.z_nm[rows].ravel(), "distance_px": np.repeat(distance, n_z),
+                "z_nm": z.ravel(), "distance_px": np.repeat(distance, n_z),
                 "err_z_nm": err, "in_range": np.isfinite(err)}))  # fmt: skip
     if not frames:
         return pd.DataFrame({name: [] for name in _PAIR_COLUMNS})

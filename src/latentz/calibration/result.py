@@ -637,7 +637,8 @@ class Calibration:
             Also return what ``z_err_nm`` is made of: ``z_err_fit_nm``, the spot's own fit
             precision (NaN for spots without ``*_err`` columns), and ``z_err_field_nm``, the
             part that varies across the field (field model, dimming transfer, distance to the
-            particle); the local model's σ is the rest, in quadrature.
+            particle); the local model's σ and the amplitude reference's scatter are the
+            rest, in quadrature.
 
         Returns
         -------
