@@ -393,7 +393,7 @@ def test_a_tiff_path_with_a_single_bead_and_explicit_position(tmp_path):
 
 
 def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
-    from latentz.calibration.result import _interp_rows
+    from latentz.calibration.rows import interp_rows
 
     rng = np.random.default_rng(5)
     planes = np.linspace(-3000.0, 3000.0, 61)
@@ -403,7 +403,7 @@ def test_row_interpolation_matches_numpy_on_each_particles_shifted_grid():
     z = rng.uniform(-3600, 3600, 500)  # some beyond a row's grid: the end value is held
     z[:5] = np.nan
     expected = np.array([np.interp(zk, grid[r], values[r]) for r, zk in zip(rows, z, strict=True)])
-    np.testing.assert_allclose(_interp_rows(grid, values, rows, z), expected, rtol=1e-12)
+    np.testing.assert_allclose(interp_rows(grid, values, rows, z), expected, rtol=1e-12)
 
 
 def test_a_one_particle_rho_a_calibration_is_its_own_reference():

@@ -14,6 +14,13 @@ from its own traces), the nearest *other* kept particle's refits at the same z c
 ``apply`` does, and that particle's inverse model gives z. The error (nm) is that z minus the
 plane's (tilt-corrected) z: field, dimming transfer and the particles' own heights together;
 the fit's precision is not in it (the refits are of the bright image).
+
+Localized instead by its second, third and fourth nearest other particles (:data:`PAIR_RANKS`),
+the same held-out particle is an emitter farther from the particle whose model it is given:
+:func:`pair_table` holds these errors with the distances, the z error of a dim emitter as it
+grows with the distance to the particle that localizes it, measured at the user's own
+particles (:meth:`~latentz.calibration.Calibration.apply` reads it with
+:func:`~latentz.calibration.errors.field_sigma`).
 """
 
 from __future__ import annotations
@@ -21,41 +28,55 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz.calibration.dimming import DIM_COLUMNS, background_ratio, shape_shift
+from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value
 from latentz.fit._model import amplitude_of
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["TRANSFER_BIN_NM", "dim_held_out", "transfer_sigma"]
+__all__ = ["PAIR_RANKS", "TRANSFER_BIN_NM", "dim_held_out", "pair_table", "transfer_sigma"]
 
 #: Width of the z bins in which :func:`transfer_sigma` pools the held-out errors, nm.
 TRANSFER_BIN_NM = 250.0
 #: Fewest held-out planes a bin of :func:`transfer_sigma` needs.
 _MIN_PER_BIN = 30
+#: Which nearest other particles localize each held-out particle in :func:`pair_table`.
+PAIR_RANKS = (1, 2, 3, 4)
+_PAIR_COLUMNS = ("c", "model", "particle", "z_nm", "distance_px", "err_z_nm", "in_range")
+
+
+def _partners(cal: Calibration, rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kept particles with a valid inverse model, the ``rank``-th nearest other one of
+    each, and its distance (px); all empty where there are no more than ``rank`` of them."""
+    rows = cal.kept[cal.local.shapes[cal.shape].inverse.valid[cal.kept]]
+    if rows.size <= rank:
+        return (np.zeros(0, int),) * 2 + (np.zeros(0),)
+    distance, nearest = cKDTree(cal.positions[rows]).query(cal.positions[rows], k=rank + 1)
+    return rows, rows[nearest[:, rank]], distance[:, rank]
 
 
 def dim_held_out(
-    cal: Calibration, photons: float | None = None, *, ratio: float | None = None
+    cal: Calibration, photons: float | None = None, *, ratio: float | None = None, rank: int = 1
 ) -> np.ndarray:
     """(n, n_z) z error (nm) of an emitter of ``photons`` photons (or of background ratio
     ``ratio`` = (b + readnoise²) / A) imaged like each kept particle at each plane, localized
-    with its nearest other kept particle's refits and inverse model (module notes); NaN for
-    culled particles and where the model does not cover it."""
+    with its ``rank``-th nearest other kept particle's refits and inverse model (module notes);
+    NaN for culled particles and where the model does not cover it."""
     local, traces, shape = cal.local, cal.traces, cal.shape
     model = local.shapes[shape]
     n, n_z = model.values.shape
     errors = np.full((n, n_z), np.nan)
-    rows = cal.kept[model.inverse.valid[cal.kept]]
-    if rows.size < 2:
+    rows, partners, _ = _partners(cal, rank)
+    if rows.size == 0:
         return errors
-    _, nearest = cKDTree(cal.positions[rows]).query(cal.positions[rows], k=2)
     i = np.repeat(rows, n_z)
     k = np.tile(np.arange(n_z), rows.size)
-    p = np.repeat(rows[nearest[:, 1]], n_z)
+    p = np.repeat(partners, n_z)
     z = local.z_nm[i, k]
     readnoise = cal.camera.readnoise
     ref = model.amplitude_ref
@@ -69,11 +90,11 @@ def dim_held_out(
     def own(name: str) -> np.ndarray:
         return traces[name][i, k]
 
+    at = row_weights(local.z_nm, p, z)
+
     def neighbour(name: str) -> np.ndarray:
-        """The nearest other particle's trace at each held-out plane's z (end values held)."""
-        values = [np.interp(local.z_nm[a], local.z_nm[b], traces[name][b])
-                  for a, b in zip(rows, rows[nearest[:, 1]], strict=True)]  # fmt: skip
-        return np.concatenate(values)
+        """The partner particle's trace at each held-out plane's z (end values held)."""
+        return interp_rows(local.z_nm, traces[name], p, z, at)
 
     if ratio is None:
         amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))
@@ -125,3 +146,38 @@ def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray
             sigmas.append([np.sqrt(np.mean(d[known][order][group] ** 2)) for d in differences])
             group[:] = False
     return np.array(centres), np.log(np.asarray(LEVELS)), np.array(sigmas).T
+
+
+def pair_table(cal: Calibration) -> pd.DataFrame:
+    """Held-out z errors of each kept particle seen as an emitter at each background ratio c of
+    :data:`~latentz.calibration.dimming.LEVELS` (only the bright image where there are no
+    refits) and localized by each of its :data:`PAIR_RANKS` nearest other particles
+    (:func:`dim_held_out`). Columns: ``c``, ``model`` ("pairs"), ``particle``, ``z_nm``,
+    ``distance_px`` (to the particle that localized it), ``err_z_nm`` and ``in_range`` (the
+    error is known, at a plane of the held-out particle's monotonic range, as
+    :func:`~latentz.calibration.crossval.crossval` holds out, and its z within the span that
+    particle was imaged over, as :meth:`~latentz.calibration.Calibration.apply` requires), the
+    columns :func:`~latentz.calibration.errors.field_sigma` reads."""
+    from latentz.calibration.dimming import LEVELS
+
+    refits = all(name in cal.traces.data for name in DIM_COLUMNS)
+    n_z = cal.local.z_nm.shape[1]
+    frames = []
+    for rank in PAIR_RANKS:
+        rows, partners, distance = _partners(cal, rank)
+        z = cal.local.z_nm[rows]
+        lo, hi = (np.repeat(cal.z_span_nm[partners, k], n_z).reshape(z.shape) for k in (0, 1))
+        own = cal.local.shapes[cal.shape].z_range[rows]  # its monotonic range, as crossval's
+        planes = (z >= own[:, :1]) & (z <= own[:, 1:])
+        for c in (LEVELS if refits else (0.0,)) if rows.size else ():
+            err = dim_held_out(cal, ratio=c, rank=rank)[rows]
+            with np.errstate(invalid="ignore"):
+                known = planes & (z + err >= lo) & (z + err <= hi)
+            err = np.where(known, err, np.nan).ravel()
+            frames.append(pd.DataFrame({
+                "c": c, "model": "pairs", "particle": np.repeat(rows, n_z),
+                "z_nm": z.ravel(), "distance_px": np.repeat(distance, n_z),
+                "err_z_nm": err, "in_range": np.isfinite(err)}))  # fmt: skip
+    if not frames:
+        return pd.DataFrame({name: [] for name in _PAIR_COLUMNS})
+    return pd.concat(frames, ignore_index=True)

@@ -25,6 +25,7 @@ from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measur
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
 from latentz.calibration.reference import ReferenceField
+from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
@@ -185,7 +186,7 @@ class Calibration:
         z = np.asarray(z_nm, dtype=np.float64)
         out = {}
         for name in ("wx", "wy", "rho"):
-            out[name] = _interp_rows(self.local.z_nm, curves[name], p, z)
+            out[name] = interp_rows(self.local.z_nm, curves[name], p, z)
             out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
         return out
 
@@ -446,13 +447,13 @@ class Calibration:
     ) -> np.ndarray:
         """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
         its residual σ at that z over the square root of its planes per polynomial parameter
-        (``at``: :func:`_row_weights` of p and z, if known)."""
+        (``at``: :func:`~latentz.calibration.rows.row_weights` of p and z, if known)."""
         sigma, count, _ = self._error_model(axis)
         if axis == "z":
             order = self.local.shapes[self.shape].inverse.order
         else:
             order = (self.local.dx if axis == "x" else self.local.dy).order
-        return _interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
+        return interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
             (order + 1) / np.maximum(count[p], 1)
         )
 
@@ -460,13 +461,42 @@ class Calibration:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
         field_sigma`), less the local models' part of the held-out errors."""
         kind = self.field_model
-        table = self.crossval_of(kind)
-        key = f"crossval_model_sigma/{kind}/{axis}"
+        return self._held_out_sigma(self.crossval_of(kind), kind, axis, z, distance,
+                                    f"crossval_model_sigma/{kind}/{axis}")  # fmt: skip
+
+    def _held_out_sigma(self, table: pd.DataFrame, kind: str, axis: str, z: np.ndarray,
+                        distance: np.ndarray, key: str) -> np.ndarray:  # fmt: skip
+        """:func:`~latentz.calibration.errors.field_sigma` of the held-out errors ``table``
+        with the local models' σ at its rows (cached under ``key``)."""
         if key not in self._cache:
             scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
-            rows = table["particle"].to_numpy()
+            rows = table["particle"].to_numpy(int)
             self._cache[key] = scale * self._model_sigma(axis, rows, table["z_nm"].to_numpy())
         return field_sigma(table, kind, axis, z, distance, model_nm=self._cache[key])
+
+    def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None,
+                    distance: np.ndarray) -> np.ndarray:  # fmt: skip
+        """1σ (nm) of the z error of spots at ``z`` of background ratio ``c_spot`` (None: as
+        bright as the calibration) ``distance`` px from the particle that localizes them, from
+        held-out particles localized by their nearer and farther neighbours
+        (:func:`~latentz.calibration.dim_crossval.pair_table`): at each of its ratios c the
+        :func:`~latentz.calibration.errors.field_sigma` line in distance, then linear in log c
+        between them."""
+        from latentz.calibration.dim_crossval import pair_table
+
+        if "pair_table" not in self._cache:
+            self._cache["pair_table"] = pair_table(self)
+        table = self._cache["pair_table"]
+        if len(table) == 0 or not table["in_range"].any():
+            return np.zeros(np.shape(z))
+        levels = np.unique(table["c"].to_numpy())
+        by_level = np.array([
+            self._held_out_sigma(table[table["c"] == c], "pairs", "z", z, distance,
+                                 f"pair_model_sigma/{c}")
+            for c in levels])  # fmt: skip
+        if levels.size == 1 or c_spot is None:
+            return by_level[0]
+        return _interp_levels(np.log(levels), by_level, c_spot)
 
     def _locate(self, s: np.ndarray, p: np.ndarray, cols: dict, located: np.ndarray) -> tuple:
         """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
@@ -506,10 +536,10 @@ class Calibration:
         from latentz.calibration.dimming import dimmest, shape_shift
 
         readnoise = self.camera.readnoise
-        at = _row_weights(self.local.z_nm, p, z)
+        at = row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
-            return _interp_rows(self.local.z_nm, self.traces[name], p, z, at)
+            return interp_rows(self.local.z_nm, self.traces[name], p, z, at)
 
         def shape_of(a, wx, wy, rho):
             return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
@@ -545,13 +575,7 @@ class Calibration:
             return np.zeros(np.shape(z))
         zq = np.where(np.isfinite(z), z, centres[0])
         by_level = np.array([np.interp(zq, centres, row) for row in sigma])  # (levels, spots)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.log(np.asarray(c_spot, dtype=np.float64))
-        x = np.clip(np.where(np.isfinite(x), x, log_c[0]), log_c[0], log_c[-1])
-        j = np.clip(np.searchsorted(log_c, x), 1, log_c.size - 1)
-        t = (x - log_c[j - 1]) / (log_c[j] - log_c[j - 1])
-        spots = np.arange(x.size)
-        return (1 - t) * by_level[j - 1, spots] + t * by_level[j, spots]
+        return _interp_levels(log_c, by_level, c_spot)
 
     @property
     def reference_field(self) -> ReferenceField:
@@ -582,7 +606,11 @@ class Calibration:
         return self.kept[idx]
 
     def apply(
-        self, spots: pd.DataFrame, *, amplitude_reference: str = "calibration"
+        self,
+        spots: pd.DataFrame,
+        *,
+        amplitude_reference: str = "calibration",
+        error_parts: bool = False,
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
@@ -605,6 +633,12 @@ class Calibration:
             the calibration particles, whose own spread in brightness ``z_err_nm`` then
             includes), or that of each emitter's own track (the spot with the smallest |ρ| in
             its ``particle`` group).
+        error_parts : bool
+            Also return what ``z_err_nm`` is made of: ``z_err_fit_nm``, the spot's own fit
+            precision (NaN for spots without ``*_err`` columns), and ``z_err_field_nm``, the
+            part that varies across the field (field model, dimming transfer, distance to the
+            particle); the local model's σ and the amplitude reference's scatter are the
+            rest, in quadrature.
 
         Returns
         -------
@@ -638,8 +672,8 @@ class Calibration:
             s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
-        at = _row_weights(self.local.z_nm, p, z)
-        z_err = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
+        at = row_weights(self.local.z_nm, p, z)
+        z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
         out, px = spots.copy(), self.camera.pixel_size_nm
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
@@ -647,15 +681,35 @@ class Calibration:
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_err = combine(z_err, self._field_sigma("z", z, distance))
-        if "background" in spots.columns and "dim0_wx" in self.traces.data:
-            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
-                                      self.camera.readnoise)  # fmt: skip
-            z_err = combine(z_err, self._transfer_sigma(z, c_spot))
-        out["z_err_nm"] = np.where(in_range, z_err, np.nan)
+        z_field = self._z_field_error(spots, cols, z, distance)
+        out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
+        if error_parts:
+            out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
+            out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p
         return out
+
+    def _z_field_error(self, spots: pd.DataFrame, cols: dict, z: np.ndarray,
+                       distance: np.ndarray) -> np.ndarray:  # fmt: skip
+        """The part of σ_z (nm) that varies across the field, as held-out particles measure
+        it: the field model's cross-validated error with the dimming correction's transfer
+        (at the spot's background ratio c), or, where larger, the error of held-out particles
+        seen as emitters of that c and localized by neighbours as far away as the spot is from
+        its particle (:meth:`_pair_sigma`). That is ``nearest``'s error: for another field
+        model it counts only beyond the distances its cross-validation held out (above their
+        90th percentile), where the model extrapolates."""
+        field = self._field_sigma("z", z, distance)
+        c_spot = None
+        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
+                                      self.camera.readnoise)  # fmt: skip
+            field = combine(field, self._transfer_sigma(z, c_spot))
+        pair = np.fmax(field, self._pair_sigma(z, c_spot, distance))
+        if self.field_model == "nearest":
+            return pair
+        held = self.crossval_of(self.field_model)["distance_px"].to_numpy()
+        return np.where(distance > np.quantile(held, 0.9), pair, field)
 
     def _amplitude_reference(
         self, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
@@ -680,23 +734,26 @@ class Calibration:
         at: tuple[np.ndarray, np.ndarray, np.ndarray],
         ref: np.ndarray,
         ref_scatter: float,
-    ) -> np.ndarray:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """σ_z (nm) before the field model's part: the spot's own (propagated from its fit
         errors where it carries them, else the calibration's at z) with the particle's model
-        error, and the amplitude reference's scatter."""
+        error, and the amplitude reference's scatter; and the fit's part alone (NaN where the
+        spots carry no fit errors)."""
         model_part = self._model_sigma("z", p, z, at)
+        fit_part = np.full(len(spots), np.nan)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
-            fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0), ref)
-            z_err = np.hypot(self.noise_scale * fit_part, model_part)
+            fit_part = self.noise_scale * self._fit_part_z(params, errors, corr, p,
+                                                           np.where(in_range, s, 0.0), ref)
+            z_err = np.hypot(fit_part, model_part)
         else:
-            z_err = _interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
+            z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
             slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
             z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
-        return z_err
+        return z_err, fit_part
 
     def _lateral_error(
         self,
@@ -717,10 +774,22 @@ class Calibration:
         if f"{axis}_err" in spots:
             own = spots[f"{axis}_err"].to_numpy(float)
         else:
-            own = _interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
+            own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
-        lack = _interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
+        lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
         return combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
+
+
+def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
+    """Values ``by_level`` (levels, spots) at each spot's ratio ``c_spot``: linear in log c
+    between the levels ``log_c`` (ascending), held at the ends; the lowest where c is unknown."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.log(np.asarray(c_spot, dtype=np.float64))
+    x = np.clip(np.where(np.isfinite(x), x, log_c[0]), log_c[0], log_c[-1])
+    j = np.clip(np.searchsorted(log_c, x), 1, log_c.size - 1)
+    t = (x - log_c[j - 1]) / (log_c[j] - log_c[j - 1])
+    spots = np.arange(x.size)
+    return (1 - t) * by_level[j - 1, spots] + t * by_level[j, spots]
 
 
 def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.ndarray:
@@ -741,41 +810,10 @@ def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.n
     return frame["track"].map(lookup).to_numpy(dtype=np.float64)
 
 
-def _row_weights(
-    z_grid: np.ndarray, rows: np.ndarray, z: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where :func:`_interp_rows` reads each point: the rows, the upper plane index j and the
-    weight w of plane j (1 − w of plane j − 1); computed once for every trace read at the same
-    points.
-
-    Every row of ``z_grid`` (n, n_z) is the same increasing grid of piezo planes minus one shift
-    (the particle's tilt plane), so each point interpolates on the first row after undoing its
-    row's shift, without gathering whole rows. Outside a row's grid the end value is held.
-    """
-    base = z_grid[0]
-    u = z + (base[0] - z_grid[:, 0])[rows]
-    j = np.clip(np.searchsorted(base, np.where(np.isfinite(u), u, -np.inf)), 1, base.size - 1)
-    w = np.clip((u - base[j - 1]) / (base[j] - base[j - 1]), 0.0, 1.0)
-    return rows, j, w
-
-
 def _bridge_gaps(values: np.ndarray) -> np.ndarray:
     """(n, n_z) ``values`` with each row's NaN planes given the previous finite plane's value
     (leading ones the next's); rows with no finite value stay NaN."""
     return pd.DataFrame(values.T).ffill().bfill().to_numpy().T
-
-
-def _interp_rows(
-    z_grid: np.ndarray,
-    values: np.ndarray,
-    rows: np.ndarray,
-    z: np.ndarray,
-    at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray:
-    """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``;
-    ``at``: :func:`_row_weights` of these rows and z, if already known."""
-    rows, j, w = _row_weights(z_grid, rows, z) if at is None else at
-    return (1 - w) * values[rows, j - 1] + w * values[rows, j]
 
 
 def _particle_table(cal: Calibration) -> pd.DataFrame:
