@@ -38,16 +38,23 @@ def test_molecules_at_the_edge_are_found_flagged_and_good(errors):
 
 
 @pytest.mark.parametrize("band", [(0.0, 3.0), (3.0, 7.5)])
-def test_errors_at_the_edge_are_within_their_1_sigma_as_often_as_inside(errors, band):
-    """How often a right 1σ covers the error is the calibration's matter, the same at the edge
-    and inside (68 % over many microscopes: ``benchmarks/bench_edges.py``); the fit at the
-    edge must not make it worse, nor hide its truncation error."""
+def test_errors_at_the_edge_are_within_their_1_sigma_68_percent_of_the_time(errors, band):
+    """The fit at the edge must neither hide its truncation error nor overstate it: x (across
+    and along the edge) and z within the reported 1σ 68.3 % of the time, within the sampling
+    error of ~280 (0–3 px) or ~430 (3–7.5 px) molecules over the two microscopes."""
     seen = errors[errors["found"] & np.isfinite(errors["z_nm"])]
-    inside = seen[seen["distance_px"] >= 7.5]
     chosen = seen[(seen["distance_px"] >= band[0]) & (seen["distance_px"] < band[1])]
+    # 2.6 binomial SE of a 68.3 % share: 0.072 at 280 molecules, 0.058 at 430
+    spread = 2.6 * np.sqrt(0.683 * 0.317 / len(chosen))
     for axis in ("across", "along", "z"):
         covered = np.mean(np.abs(chosen[f"{axis}_nm"]) < chosen[f"{axis}_err_nm"])
-        reference = np.mean(np.abs(inside[f"{axis}_nm"]) < inside[f"{axis}_err_nm"])
-        # 2.6 SE of the difference of two binomial shares (~280 or ~440 against 240 molecules)
-        spread = 2.6 * np.sqrt(0.683 * 0.317 * (1 / len(chosen) + 1 / len(inside)))
-        assert abs(covered - reference) < spread, (band, axis, covered, reference, len(chosen))
+        assert abs(covered - 0.683) < spread, (band, axis, covered, len(chosen))
+
+
+def test_errors_inside_cover_within_the_per_microscope_band(errors):
+    """Inside, coverage is the calibration's matter: over these two microscopes it must lie in
+    the 50–85 % band that every microscope of the validation family is held to."""
+    seen = errors[errors["found"] & np.isfinite(errors["z_nm"]) & (errors["distance_px"] >= 7.5)]
+    for axis in ("across", "along", "z"):
+        covered = np.mean(np.abs(seen[f"{axis}_nm"]) < seen[f"{axis}_err_nm"])
+        assert 0.50 <= covered <= 0.85, (axis, covered)
