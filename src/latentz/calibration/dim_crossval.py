@@ -34,7 +34,6 @@ from scipy.spatial import cKDTree
 from latentz.calibration.dimming import DIM_COLUMNS, background_ratio, shape_shift
 from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value
-from latentz.fit._model import amplitude_of
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -60,11 +59,9 @@ def _partners(cal: Calibration, rank: int) -> tuple[np.ndarray, np.ndarray, np.n
     return rows, rows[nearest[:, rank]], distance[:, rank]
 
 
-def dim_held_out(
-    cal: Calibration, photons: float | None = None, *, ratio: float | None = None, rank: int = 1
-) -> np.ndarray:
-    """(n, n_z) z error (nm) of an emitter of ``photons`` photons (or of background ratio
-    ``ratio`` = (b + readnoise²) / A) imaged like each kept particle at each plane, localized
+def dim_held_out(cal: Calibration, *, ratio: float, rank: int = 1) -> np.ndarray:
+    """(n, n_z) z error (nm) of an emitter of background ratio ``ratio`` = (b + readnoise²) / A
+    imaged like each kept particle at each plane, localized
     with its ``rank``-th nearest other kept particle's refits and inverse model (module notes);
     NaN for culled particles and where the model does not cover it."""
     local, traces, shape = cal.local, cal.traces, cal.shape
@@ -96,11 +93,7 @@ def dim_held_out(
         """The partner particle's trace at each held-out plane's z (end values held)."""
         return interp_rows(local.z_nm, traces[name], p, z, at)
 
-    if ratio is None:
-        amplitude = amplitude_of(photons, own("wx"), own("wy"), own("rho"))
-        c_spot = background_ratio(own("background"), amplitude, readnoise)
-    else:
-        c_spot = np.full(i.size, float(ratio))
+    c_spot = np.full(i.size, float(ratio))
     c_own = background_ratio(own("background"), own("amplitude"), readnoise)
     c_near = background_ratio(neighbour("background"), neighbour("amplitude"), readnoise)
     if not all(name in traces.data for name in DIM_COLUMNS):  # no refits: no correction
