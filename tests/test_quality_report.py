@@ -32,5 +32,7 @@ def test_the_section_says_why_each_choice_was_made(small_calibration):
 
     text = quality_section(small_calibration).text
     assert small_calibration.shape_choice["reason"] in text
-    assert "ROI: " in text and "chosen from the data: 95 % of the light" in text
+    reason = small_calibration.options["roi_size_reason"]
+    assert "expected z error" in reason and f"ROI: {small_calibration.roi_size} × " in text
+    assert reason in text
     assert text.count("as requested when calibrating") == 1  # the field model only

@@ -179,7 +179,7 @@ def fit_sigma_s(
     sd = np.asarray(errors, dtype=np.float64).reshape(n, 4)
     corr = np.full((n, len(CORRELATED)), np.nan)
     if correlations is not None:
-        corr = np.array(correlations, dtype=np.float64).reshape(n, -1)
+        corr = np.array(correlations, dtype=np.float64).reshape(n, len(CORRELATED))
     missing = ~np.all(np.isfinite(corr), axis=1) & np.all(np.isfinite(params), axis=1)
     if missing.any():
         p = params[missing].copy()
