@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
-import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -38,6 +36,9 @@ from latentz._shared.atomic import write_text_atomic
 from latentz.validation.datasets import emitter_images
 from latentz.validation.family import FAMILY_SIZES, draw_microscope, family_data
 from latentz.validation.truth import localize_test, remove_planes, true_positions
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _draws import run_draws  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_error_parts.md"
 HALF_NORMAL_MEDIAN = 0.674
@@ -157,18 +158,8 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--first", type=int, default=4, help="seed of the first draw")
-    parser.add_argument("--draws", type=int, default=4)
-    parser.add_argument("--size", default="small", choices=tuple(FAMILY_SIZES))
-    parser.add_argument("--out", type=Path, default=OUT)
-    args = parser.parse_args()
-    warnings.simplefilter("ignore")
-    start, rows = time.perf_counter(), []
-    for seed in range(args.first, args.first + args.draws):
-        rows.append(row_of(seed, args.size))
-        print(rows[-1], file=sys.stderr, flush=True)
-        write(rows, args, time.perf_counter() - start)
+    run_draws(__doc__.splitlines()[0], row_of, write, out=OUT, draws=4, first=4,
+              size="small")
 
 
 if __name__ == "__main__":

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +32,9 @@ import pandas as pd
 from latentz._shared.atomic import write_text_atomic
 from latentz.validation.family import FAMILY_SIZES
 from latentz.validation.study import run_defaults
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _draws import run_draws  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_validation_family.md"
 
@@ -105,18 +106,8 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--draws", type=int, default=24)
-    parser.add_argument("--first", type=int, default=0, help="seed of the first draw")
-    parser.add_argument("--size", default="full", choices=tuple(FAMILY_SIZES))
-    parser.add_argument("--out", type=Path, default=OUT)
-    args = parser.parse_args()
-    warnings.simplefilter("ignore")
-    start, rows = time.perf_counter(), []
-    for seed in range(args.first, args.first + args.draws):
-        rows.append(run_defaults(seed, args.size))
-        print(rows[-1], file=sys.stderr, flush=True)
-        write(rows, args, time.perf_counter() - start)
+    run_draws(__doc__.splitlines()[0], run_defaults, write, out=OUT, draws=24, first=0,
+              size="full")
 
 
 if __name__ == "__main__":
