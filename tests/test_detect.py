@@ -102,6 +102,21 @@ def test_detection_finds_dim_isolated_emitters():
     assert false <= 0.01 * len(found)
 
 
+def _assert_frame_matches_the_twin(found, t: int, photons: np.ndarray) -> None:
+    """Frame ``t`` of the kernels' detections against :func:`find_peaks` on its photoelectrons.
+
+    float32 kernels against float64 NumPy: the same maxima, scores to float32 rounding (no
+    maximum lies within 1e-3 of the threshold or of a neighbour in these frames)."""
+    rows, cols, snr = find_peaks(photons)
+    mine = found.frame == t
+    assert sorted(zip(found.row[mine], found.col[mine], strict=True)) == sorted(
+        zip(rows, cols, strict=True)
+    )
+    order = np.lexsort((cols, rows))
+    mine_order = np.lexsort((found.col[mine], found.row[mine]))
+    np.testing.assert_allclose(found.snr[mine][mine_order], snr[order], rtol=1e-4)
+
+
 def test_kernels_match_their_numpy_twin():
     # sizes not divisible by the block factor (4 at sigma 1.5) exercise the partial blocks
     rng = np.random.default_rng(11)
@@ -109,16 +124,7 @@ def test_kernels_match_their_numpy_twin():
     frames = np.stack([_spot_frame(points, shape=(201, 261), seed=s) for s in range(3)])
     found = detect_arrays(frames, roi_size=7)
     for t, frame in enumerate(frames):
-        rows, cols, snr = find_peaks(frame)
-        mine = found.frame == t
-        # float32 kernels against float64 NumPy: the same maxima, scores to float32 rounding
-        # (no maximum lies within 1e-3 of the threshold or of a neighbour here)
-        assert sorted(zip(found.row[mine], found.col[mine], strict=True)) == sorted(
-            zip(rows, cols, strict=True)
-        )
-        order = np.lexsort((cols, rows))
-        mine_order = np.lexsort((found.col[mine], found.row[mine]))
-        np.testing.assert_allclose(found.snr[mine][mine_order], snr[order], rtol=1e-4)
+        _assert_frame_matches_the_twin(found, t, frame)
 
 
 def test_kernels_read_adu_frames_as_the_twin_reads_their_photoelectrons():
@@ -133,15 +139,7 @@ def test_kernels_read_adu_frames_as_the_twin_reads_their_photoelectrons():
     adu = np.round(photons * flat / cam.gain + cam.offset).astype(np.uint16)
     found = detect_arrays(adu, roi_size=7, camera=cam)
     for t in range(len(adu)):
-        rows, cols, snr = find_peaks(cam.to_photons(adu[t]))
-        mine = found.frame == t
-        # float32 kernels against float64 NumPy, as in the twin test above
-        assert sorted(zip(found.row[mine], found.col[mine], strict=True)) == sorted(
-            zip(rows, cols, strict=True)
-        )
-        order = np.lexsort((cols, rows))
-        mine_order = np.lexsort((found.col[mine], found.row[mine]))
-        np.testing.assert_allclose(found.snr[mine][mine_order], snr[order], rtol=1e-4)
+        _assert_frame_matches_the_twin(found, t, cam.to_photons(adu[t]))
     # the ROIs are the photoelectrons at their own pixels (float64, the fits' input)
     expected = cut_rois(cam.to_photons(adu), found.frame, found.row0, found.col0, 7)
     np.testing.assert_allclose(found.rois, expected, rtol=1e-12)
