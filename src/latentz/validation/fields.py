@@ -105,13 +105,7 @@ class AberrationFields:
             defect = sum(defect_nm * rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0) * bump
                          for bump in bumps)  # fmt: skip
             maps.append(mean[mode] + scale * (std[mode] * noise + defect))
-        return cls(
-            np.array(maps),
-            float(curvature_nm),
-            float(tilt_mrad),
-            float(rng.uniform(0, 2 * np.pi)),
-            float(pixel_size_nm),
-        )
+        return cls._assemble(maps, rng, curvature_nm, tilt_mrad, pixel_size_nm)
 
     @classmethod
     def polynomial(
@@ -140,6 +134,19 @@ class AberrationFields:
             field = sum(rng.normal() * t for t in terms)
             field = (field - field.mean()) / field.std()
             maps.append(mean[mode] + std[mode] * field)
+        return cls._assemble(maps, rng, curvature_nm, tilt_mrad, pixel_size_nm)
+
+    @classmethod
+    def _assemble(
+        cls,
+        maps: list[np.ndarray],
+        rng: np.random.Generator,
+        curvature_nm: float,
+        tilt_mrad: float,
+        pixel_size_nm: float,
+    ) -> AberrationFields:
+        """The fields of ``maps`` (one per mode of :data:`MODES`, nm RMS), the tilt's direction
+        drawn from ``rng`` after them."""
         return cls(
             np.array(maps),
             float(curvature_nm),
