@@ -48,15 +48,11 @@ class JointZ:
         The fit's 1σ from the curvature of d² at the minimum.
     spread_nm : ndarray (n,)
         The farthest plane from ``z_nm`` whose d² is within 1 of the minimum.
-    chi2 : ndarray (n,)
-        d² at the best plane (3 fitted values against the curves: about χ² with 2 degrees of
-        freedom for a right calibration).
     """
 
     z_nm: np.ndarray
     sigma_nm: np.ndarray
     spread_nm: np.ndarray
-    chi2: np.ndarray
 
 
 def shape_covariance(
@@ -98,7 +94,7 @@ def joint_z(
     the particles' curves (:meth:`~latentz.calibration.result.Calibration.curves_at`),
     ``z_grid`` (particles, planes) their planes (nm)."""
     n = len(p)
-    out = [np.full(n, np.nan) for _ in range(4)]
+    out = [np.full(n, np.nan) for _ in range(3)]
     for start in range(0, n, _CHUNK):
         part = slice(start, start + _CHUNK)
         for whole, piece in zip(out, _search(curves_at, z_grid, p[part], fitted[part],
@@ -126,7 +122,7 @@ def _weights(curves_at: Callable, p: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
-    """z, σ, spread and χ² of one chunk of spots (:func:`joint_z`)."""
+    """z, σ and spread of one chunk of spots (:func:`joint_z`)."""
     grid = z_grid[p]
     weight = _weights(curves_at, p, cov)
     r = fitted[:, None, :] - _curves(curves_at, p[:, None], grid)
@@ -144,7 +140,7 @@ def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
         sigma = 1.0 / np.sqrt(np.einsum("mi,mij,mj->m", slope, weight, slope))
         spread = np.max(np.where(d2 < best[:, None] + 1.0, np.abs(grid - z[:, None]), 0.0), axis=1)
     found = np.isfinite(best)
-    return tuple(np.where(found, v, np.nan) for v in (z, sigma, spread, best))
+    return tuple(np.where(found, v, np.nan) for v in (z, sigma, spread))
 
 
 def _parabola_vertex(grid: np.ndarray, d2: np.ndarray, k: np.ndarray) -> np.ndarray:
