@@ -58,7 +58,7 @@ def test_joint_z_reaches_its_bound_and_its_sigma_covers():
     curves_at = _curves(gamma_nm=300.0)
     z_true = rng.uniform(-600.0, 600.0, N)
     fitted, cov = _spots(curves_at, z_true, rng)
-    out = joint_z(curves_at, GRID[None, :], np.zeros(N, int), fitted, cov)
+    out = joint_z(curves_at, GRID[None, :], np.zeros((1, 3)), np.zeros(N, int), fitted, cov)
     error = out.z_nm - z_true
     bound = _bound(curves_at, z_true, cov)
     assert np.sqrt(np.mean((error / bound) ** 2)) == pytest.approx(1.0, abs=RATIO_TOL)
@@ -73,7 +73,7 @@ def test_without_astigmatism_sigma_reaches_the_other_side_of_focus():
     curves_at = _curves(gamma_nm=0.0)
     z_true = rng.choice([-1, 1], N) * rng.uniform(300.0, 700.0, N)
     fitted, cov = _spots(curves_at, z_true, rng)
-    out = joint_z(curves_at, GRID[None, :], np.zeros(N, int), fitted, cov)
+    out = joint_z(curves_at, GRID[None, :], np.zeros((1, 3)), np.zeros(N, int), fitted, cov)
     sigma = np.fmax(out.sigma_nm, out.spread_nm)
     assert np.all(sigma >= 2 * np.abs(out.z_nm) - 2 * np.diff(GRID)[0])
     mirrored = np.fmin(np.abs(out.z_nm - z_true), np.abs(out.z_nm + z_true))

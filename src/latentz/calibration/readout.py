@@ -8,7 +8,8 @@ Mahalanobis distance
 
 C_fit the covariance of the spot's fitted (wx, wy, ρ) (its own sandwich errors and correlations,
 :func:`~latentz.calibration.errors.fit_covariance`; the Cramér–Rao covariance at its fitted
-parameters where it carries none) and C_curve the curves' own scatter (diagonal, px², px², 1).
+parameters where it carries none) and C_curve the curves' own scatter (diagonal, px², px², 1:
+the particle's traces about its curves over its usable planes, where the readout is used).
 z minimises d² over the particle's planes, refined by the parabola through the best plane and
 its two neighbours. The widths tell how far from focus the spot is, ρ (or wx − wy) on which side:
 one shape value that folds them together loses the part of the information that its weights do
@@ -17,7 +18,9 @@ not match.
 The fit's 1σ in z is the curvature's, ``1 / sqrt(Jᵀ (C_fit + C_curve)⁻¹ J)`` with J = dc/dz at
 the minimum; ``spread_nm`` is the farthest plane whose d² lies within 1 of the minimum, which is
 σ itself for one clean minimum and reaches a second minimum where there is one (the sign of
-defocus unresolved: weak astigmatism, dim spots).
+defocus unresolved: weak astigmatism, dim spots). Where the curves do not hold the spot (d² at
+the minimum beyond :data:`CHI2_HELD`), C is scaled by d²/2 (2 degrees of freedom: 3 values, 1
+fitted z), and both σ and the spread grow with it.
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ __all__ = ["SHAPE_PARAMS", "JointZ", "joint_z", "shape_covariance"]
 
 #: The fitted parameters the readout compares with the calibration curves.
 SHAPE_PARAMS = ("wx", "wy", "rho")
+#: d² at the minimum beyond which the curves do not hold the spot: χ²(2)'s 99th percentile.
+CHI2_HELD = 9.21
 #: Spots searched at once (the distances take spots × planes × 3 values).
 _CHUNK = 2048
 
@@ -85,6 +90,7 @@ def shape_covariance(
 def joint_z(
     curves_at: Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]],
     z_grid: np.ndarray,
+    scatter: np.ndarray,
     p: np.ndarray,
     fitted: np.ndarray,
     cov: np.ndarray,
@@ -92,13 +98,15 @@ def joint_z(
     """The joint readout (module notes) of spots with fitted (wx, wy, ρ) ``fitted`` (n, 3) and
     their covariance ``cov`` (n, 3, 3) on particles ``p`` (n,): ``curves_at(particle, z)`` gives
     the particles' curves (:meth:`~latentz.calibration.result.Calibration.curves_at`),
-    ``z_grid`` (particles, planes) their planes (nm)."""
+    ``z_grid`` (particles, planes) their planes (nm) and ``scatter`` (particles, 3) the RMS
+    scatter of their wx, wy, ρ about them (NaN: none)."""
     n = len(p)
     out = [np.full(n, np.nan) for _ in range(3)]
     for start in range(0, n, _CHUNK):
         part = slice(start, start + _CHUNK)
-        for whole, piece in zip(out, _search(curves_at, z_grid, p[part], fitted[part],
-                                             cov[part]), strict=True):  # fmt: skip
+        found = _search(curves_at, z_grid, p[part], fitted[part], cov[part] + _diagonal(
+            scatter[p[part]]))  # fmt: skip
+        for whole, piece in zip(out, found, strict=True):
             whole[part] = piece
     return JointZ(*out)
 
@@ -109,11 +117,13 @@ def _curves(curves_at: Callable, p: np.ndarray, z: np.ndarray) -> np.ndarray:
     return np.stack([c[name] for name in SHAPE_PARAMS], axis=-1)
 
 
-def _weights(curves_at: Callable, p: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """(C_fit + C_curve)⁻¹ (m, 3, 3); NaN where it is not finite or not invertible."""
-    c = curves_at(p, np.zeros(len(p)))
-    scatter = np.stack([c[f"{name}_scatter"] for name in SHAPE_PARAMS], axis=-1)
-    total = cov + np.eye(3) * np.nan_to_num(scatter**2)[:, None, :]
+def _diagonal(scatter: np.ndarray) -> np.ndarray:
+    """Covariances (m, 3, 3) of independent errors of 1σ ``scatter`` (m, 3; NaN counts 0)."""
+    return np.eye(3) * np.nan_to_num(scatter**2)[:, None, :]
+
+
+def _weights(total: np.ndarray) -> np.ndarray:
+    """Inverse covariances (m, 3, 3); NaN where not finite or not invertible."""
     ok = np.all(np.isfinite(total), axis=(1, 2))
     ok[ok] = np.linalg.det(total[ok]) > 0
     weight = np.full(total.shape, np.nan)
@@ -122,23 +132,25 @@ def _weights(curves_at: Callable, p: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
-    """z, σ and spread of one chunk of spots (:func:`joint_z`)."""
+    """z, σ and spread of one chunk of spots (:func:`joint_z`), ``cov`` = C_fit + C_curve."""
     grid = z_grid[p]
-    weight = _weights(curves_at, p, cov)
+    weight = _weights(cov)
     r = fitted[:, None, :] - _curves(curves_at, p[:, None], grid)
     d2 = np.einsum("mki,mij,mkj->mk", r, weight, r)
     d2 = np.where(np.isfinite(d2), d2, np.inf)
     rows = np.arange(len(p))
     k = np.argmin(d2, axis=1)
     best = d2[rows, k]
+    scale = np.where(best > CHI2_HELD, best / 2, 1.0)  # curves that do not hold the spot
     z = _parabola_vertex(grid, d2, k)
     step = np.median(np.diff(grid, axis=1), axis=1)
     slope = (_curves(curves_at, p, z + step / 2) - _curves(curves_at, p, z - step / 2)) / step[
         :, None
     ]
     with np.errstate(divide="ignore", invalid="ignore"):
-        sigma = 1.0 / np.sqrt(np.einsum("mi,mij,mj->m", slope, weight, slope))
-        spread = np.max(np.where(d2 < best[:, None] + 1.0, np.abs(grid - z[:, None]), 0.0), axis=1)
+        sigma = np.sqrt(scale / np.einsum("mi,mij,mj->m", slope, weight, slope))
+        within = d2 < (best + scale)[:, None]
+        spread = np.max(np.where(within, np.abs(grid - z[:, None]), 0.0), axis=1)
     found = np.isfinite(best)
     return tuple(np.where(found, v, np.nan) for v in (z, sigma, spread))
 

@@ -625,7 +625,21 @@ class Calibration:
         cov = shape_covariance(params, errors, corr, roi_size=self.roi_size,
                                readnoise=self.camera.readnoise)  # fmt: skip
         fitted = params[:, 4:7] if shift is None else params[:, 4:7] - shift
-        return joint_z(self.curves_at, self.local.z_nm, p, fitted, cov)
+        return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov)
+
+    def _usable_scatter(self) -> np.ndarray:
+        """(n, 3) RMS scatter of each particle's wx, wy, ρ traces about its curves
+        (:meth:`curves_at`) over its usable planes (:attr:`usable_planes`): far from focus the
+        fitted widths of ring images jump by far more, where no spot is read."""
+        if "usable_scatter" not in self._cache:
+            self.curves_at(0, 0.0)  # the curves, computed once
+            use = self.usable_planes
+            with np.errstate(invalid="ignore"):
+                self._cache["usable_scatter"] = np.column_stack([
+                    np.sqrt(row_mean(np.where(use, (self.traces[k] - self._cache["curves"][k]) ** 2,
+                                              np.nan)))
+                    for k in SHAPE_PARAMS])  # fmt: skip
+        return self._cache["usable_scatter"]
 
     def _joint_shape(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
                      ref: np.ndarray) -> tuple[np.ndarray, JointZ]:  # fmt: skip
