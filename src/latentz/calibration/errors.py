@@ -3,9 +3,11 @@
 
 Three independent parts, added in quadrature:
 
-1. **the fit's precision**: the Cramér–Rao errors of the spot's fitted wx, wy, ρ, A propagated to
-   its shape value s, then through the slope of the inverse function dz/ds; laterally, the fit's
-   own x, y error, plus the slope of Δx'(z), Δy'(z) times the z error;
+1. **the fit's precision**: with the joint readout, the curvature of its distance to the
+   calibration curves (:mod:`latentz.calibration.readout`); with the one shape value, the
+   errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the slope of the
+   inverse function dz/ds; laterally, the fit's own x, y error, plus the slope of Δx'(z),
+   Δy'(z) times the z error;
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter); laterally also its lack of fit, the part of the residual σ

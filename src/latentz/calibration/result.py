@@ -3,8 +3,9 @@
 A :class:`Calibration` holds the traces and local models of every calibration particle on the
 tilt-corrected z axis (z = 0 is the focal surface of the calibration particles after levelling)
 and the widefield models built from them. :meth:`Calibration.apply` localizes spots in 3D: z from
-the field model of z at the spot's shape value, then the lateral correction at that z; shape
-values outside what the particles cover are flagged, never extrapolated.
+the field model of z at the spot's shape value (by default the value whose z its fitted wx, wy, ρ
+fit best jointly, :mod:`latentz.calibration.readout`), then the lateral correction at that z;
+shape values outside what the particles cover are flagged, never extrapolated.
 :meth:`Calibration.local_z` and :meth:`Calibration.local_delta` evaluate every particle's models
 at once, for the widefield models. The file layout is described in docs/file-format.md.
 """
@@ -680,8 +681,8 @@ class Calibration:
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
-        z comes from the field model of z(x', y'; s) at the spot's shape value s, and the
-        lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
+        z comes from the field model of z(x', y'; s) at the spot's shape value s (see
+        ``z_readout``), and the lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
         ``field_model="nearest"``, from the nearest calibration particle's local models.
         Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
         nearest particle's local model errors and the field model's cross-validated error
