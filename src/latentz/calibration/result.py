@@ -3,9 +3,10 @@
 A :class:`Calibration` holds the traces and local models of every calibration particle on the
 tilt-corrected z axis (z = 0 is the focal surface of the calibration particles after levelling)
 and the widefield models built from them. :meth:`Calibration.apply` localizes spots in 3D: z from
-the field model of z at the spot's shape value (by default the value whose z its fitted wx, wy, ρ
-fit best jointly, :mod:`latentz.calibration.readout`), then the lateral correction at that z;
-shape values outside what the particles cover are flagged, never extrapolated.
+the field model of z at the spot's shape value (or, with ``z_readout="joint"``, the value whose
+z its fitted wx, wy, ρ fit best jointly, :mod:`latentz.calibration.readout`), then the lateral
+correction at that z; shape values outside what the particles cover are flagged, never
+extrapolated.
 :meth:`Calibration.local_z` and :meth:`Calibration.local_delta` evaluate every particle's models
 at once, for the widefield models. The file layout is described in docs/file-format.md.
 """
@@ -677,13 +678,14 @@ class Calibration:
         *,
         amplitude_reference: str = "calibration",
         error_parts: bool = False,
-        z_readout: str = "joint",
+        z_readout: str = "shape",
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
         z comes from the field model of z(x', y'; s) at the spot's shape value s (see
-        ``z_readout``), and the lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
-        ``field_model="nearest"``, from the nearest calibration particle's local models.
+        ``z_readout``), and the lateral correction from the field models of Δx', Δy' at that z
+        (paper Fig. 4); with ``field_model="nearest"``, from the nearest calibration particle's
+        local models.
         Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
         nearest particle's local model errors and the field model's cross-validated error
         (:mod:`latentz.calibration.errors`); the spots' own part is scaled by
@@ -700,10 +702,10 @@ class Calibration:
             the calibration particles, whose own spread in brightness ``z_err_nm`` then
             includes), or that of each emitter's own track (the spot with the smallest |ρ| in
             its ``particle`` group).
-        z_readout : {"joint", "shape"}
-            How the spot's shape becomes z: "joint", its fitted wx, wy, ρ against its particle's
-            curves of the three, weighted by their covariance (:mod:`~latentz.calibration.
-            readout`), passed on as the shape value of that z; or "shape", its one shape value.
+        z_readout : {"shape", "joint"}
+            How the spot's shape becomes z: "shape", its one shape value; or "joint", its fitted
+            wx, wy, ρ against its particle's curves of the three, weighted by their covariance
+            (:mod:`~latentz.calibration.readout`), passed on as the shape value of that z.
             With "joint", where a second z fits within Δχ² < 1 (the sign of defocus unresolved:
             weak astigmatism, dim spots) the better one is reported and the fit's part of
             ``z_err_nm`` reaches the other.
