@@ -91,6 +91,14 @@ def test_a_roi_as_good_near_focus_wins_by_its_range():
     assert choose_roi(scores)[0] == 21
 
 
+def test_a_roi_that_keeps_one_particle_loses_to_one_whose_errors_are_held_out():
+    """A lone particle's emitters are read by its own models: its better score is in-sample."""
+    lone = _score(20.0, 30.0) | {"kept": 1}
+    assert choose_roi({11: _score(30.0, 60.0), 15: lone})[0] == 11
+    # where every candidate keeps one particle, the rule judges them as it judges any
+    assert choose_roi({11: _score(30.0, 60.0) | {"kept": 1}, 15: lone})[0] == 15
+
+
 def test_the_smaller_roi_wins_a_tie():
     assert choose_roi({19: _score(30.0, 40.0), 15: _score(30.0, 40.0)})[0] == 15
 

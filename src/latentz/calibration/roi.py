@@ -31,8 +31,10 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
    over every plane any candidate measures; each has a standard error over the particles
    (over the planes for a lone particle). A candidate is *as good as* the best when it
    exceeds it by no more than their noise (the standard errors in quadrature) or
-   :data:`CORE_TOLERANCE`, whichever is larger. The candidates as good as the best near focus
-   are eligible, and the smallest of them as good as the best of them over the range is
+   :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one particle is scored
+   on that particle's own images read by its own models (nothing is held out), so it competes
+   only where no candidate keeps two. The candidates as good as the best near focus are
+   eligible, and the smallest of them as good as the best of them over the range is
    chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
    nothing near focus, and a shorter usable z range is preferred to lost precision near
    focus. A candidate whose calibration fails is skipped, so the choice never fails where a
@@ -212,7 +214,8 @@ def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
         for name, planes in (("core", core), ("range", union)):
             value, se = _rms_over(scores[r], planes)
             table[r] |= {f"{name}_nm": value, f"{name}_se_nm": se}
-    eligible = _as_good(table, rois, "core") or rois  # none measures: judged on range and size
+    held_out = [r for r in rois if table[r]["kept"] >= 2] or rois
+    eligible = _as_good(table, held_out, "core") or held_out  # none measures: range and size
     chosen = min(_as_good(table, eligible, "range") or eligible)
     row = table[chosen]
     lo, hi = row["usable_nm"]
