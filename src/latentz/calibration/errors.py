@@ -204,16 +204,25 @@ def fit_sigma_s(
     return np.sqrt(np.maximum(variance, 0.0))
 
 
-def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_params: int) -> float:
+def measured_noise(
+    residual_nm: np.ndarray,
+    predicted_nm: np.ndarray,
+    *,
+    n_params: int,
+    n_fitted: np.ndarray | None = None,
+) -> float:
     """How much less the calibration's own images scatter in z than their fit errors say.
 
     ``residual_nm`` (n, n_z): each calibration image's z minus its particle's z(s) curve;
     ``predicted_nm`` (n, n_z): the fit's part of ``z_err_nm`` for that image, as
     :meth:`~latentz.calibration.Calibration.apply` computes it for a spot (NaN for images not to
-    count); ``n_params``: the parameters of each curve. Returns r, the root mean square of each
+    count); ``n_params``: the parameters of each curve; ``n_fitted`` (n,): the images each curve
+    was fitted to (by default those that count). Returns r, the root mean square of each
     image's residual over its predicted error (each particle's squares corrected by
-    ``m / (m − n_params)`` for its ``m`` residuals), where r is below 1 by more than twice its
-    sampling error (``1/sqrt(2 m)`` for ``m`` images in all), else 1. Each image counts once: a
+    ``f / (f − n_params)`` for its ``f`` fitted images: a least-squares curve's residuals are
+    that much smaller than the images' scatter, on average over the images it was fitted to,
+    however few of them count), where r is below 1 by more than twice its sampling error
+    (``1/sqrt(2 m)`` for ``m`` images in all), else 1. Each image counts once: a
     ratio of RMS values would be ruled by the few planes where the curve is flat and the
     predicted error huge. The curve's lack of fit, stage jitter and flicker only add scatter, so
     r < 1 means the pixels are less noisy than the camera model says (a gain too low, frames
@@ -224,7 +233,8 @@ def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_param
     m = int(count.sum())
     if m == 0:
         return 1.0
-    dof = count / np.maximum(count - n_params, 1)
+    fitted = count if n_fitted is None else np.asarray(n_fitted)
+    dof = fitted / np.maximum(fitted - n_params, 1)
     normalised2 = np.where(use, residual_nm / np.where(use, predicted_nm, 1.0), 0.0) ** 2
     ratio = float(np.sqrt(np.sum(dof * np.sum(normalised2, axis=1)) / m))
     return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0

@@ -436,10 +436,14 @@ class Calibration:
                 s = np.where(use, model.values[k], 0.0).ravel()
                 part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
                 predicted = np.where(use, part.reshape(len(k), n_z), np.nan)
-                residual = model.inverse[k].residuals(model.values[k], self.local.z_nm[k])
+                z = self.local.z_nm[k]
+                residual = model.inverse[k].residuals(model.values[k], z)
+                span = model.z_range[k]  # the inverse's planes: finite, in its monotonic range
+                fitted = np.isfinite(model.values[k]) & (z >= span[:, :1]) & (z <= span[:, 1:])
                 self._cache["noise_scale"] = measured_noise(
-                    residual, predicted, n_params=model.inverse.order + 1
-                )
+                    residual, predicted, n_params=model.inverse.order + 1,
+                    n_fitted=fitted.sum(axis=1),
+                )  # fmt: skip
         return self._cache["noise_scale"]
 
     def _model_sigma(
