@@ -35,8 +35,9 @@ from latentz.fit.api import (
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
+from latentz.localization.mismatch import check_calibration_fits
 from latentz.localization.pairs import PAIR_COLUMNS, split_pairs
-from latentz.localization.quality import assess, check_calibration_fits
+from latentz.localization.quality import assess
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -408,5 +409,5 @@ def localize(
         table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))
     table = assess(table, calibration)
     if calibration is not None:
-        table = check_calibration_fits(table)
+        table = check_calibration_fits(table, calibration)
     return table
