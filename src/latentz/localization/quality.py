@@ -82,6 +82,7 @@ QUALITY_COLUMNS = (
     "good",
 )
 
+
 def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
     """(duplicate, unresolved) flags, frame by frame; the rows of one two-emitter fit (the same
     ``pair`` number) are not each other's neighbours, and ``merged`` rows are unresolved."""
