@@ -338,26 +338,44 @@ def _higher_near(p, q, rows, cols, values, merge_radius):
 
 
 @numba.njit(cache=True)
+def _rows_near(first, stop, rows, p, merge_radius):
+    """From ``first``, the first maximum of ``first:stop`` (ordered by row) whose row is within
+    ``merge_radius`` of maximum ``p``'s or below it; the scan ends where a row lies beyond."""
+    while first < stop and rows[first] < rows[p] - merge_radius:
+        first += 1
+    return first
+
+
+@numba.njit(cache=True)
 def count_higher(starts, rows, cols, values, merge_radius, counts):
-    """``counts[p]``: the maxima of the same frame higher than ``p`` within ``merge_radius``."""
+    """``counts[p]``: the maxima of the same frame higher than ``p`` within ``merge_radius``.
+    The maxima of each frame are ordered by row: only the rows within reach are scanned."""
     for t in range(len(starts) - 1):
+        first = starts[t]
         for p in range(starts[t], starts[t + 1]):
+            first = _rows_near(first, starts[t + 1], rows, p, merge_radius)
             k = 0
-            for q in range(starts[t], starts[t + 1]):
+            q = first
+            while q < starts[t + 1] and rows[q] <= rows[p] + merge_radius:
                 k += _higher_near(p, q, rows, cols, values, merge_radius)
+                q += 1
             counts[p] = k
 
 
 @numba.njit(cache=True)
 def list_higher(starts, rows, cols, values, merge_radius, offsets, higher):
-    """``higher[offsets[p] : offsets[p + 1]]``: the maxima counted by `count_higher`."""
+    """``higher[offsets[p] : offsets[p + 1]]``: the maxima counted by `count_higher`, in order."""
     for t in range(len(starts) - 1):
+        first = starts[t]
         for p in range(starts[t], starts[t + 1]):
+            first = _rows_near(first, starts[t + 1], rows, p, merge_radius)
             k = offsets[p]
-            for q in range(starts[t], starts[t + 1]):
+            q = first
+            while q < starts[t + 1] and rows[q] <= rows[p] + merge_radius:
                 if _higher_near(p, q, rows, cols, values, merge_radius):
                     higher[k] = q
                     k += 1
+                q += 1
 
 
 @numba.njit(cache=True)
