@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import dask
@@ -125,6 +126,12 @@ def _localize_chunk(
                        readnoise=readnoise, calibration=calibration)  # fmt: skip
 
 
+def _chunk_with(options: tuple, block: np.ndarray, first_frame: int) -> pd.DataFrame:
+    """`_localize_chunk` of ``block`` with the movie's ``options`` (its arguments after
+    ``first_frame``)."""
+    return _localize_chunk(block, first_frame, *options)
+
+
 def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
     """What a task reads: for a file, its path and frame range (workers open the file
     themselves, so nothing unpicklable enters the task graph); otherwise the frames' slice."""
@@ -195,16 +202,16 @@ def _localize_chunks(
 ) -> pd.DataFrame:
     """Detect and fit chunk by chunk, in waves of as many chunks as the scheduler has workers."""
     chosen, width, client = _scheduler_and_width(scheduler)
+    # the options bound to the task's function: dask would walk the calibration's fields and
+    # arrays as arguments, looking for collections, on every task
+    chunk_task = dask.delayed(partial(_chunk_with, options), pure=False)
     tables = []
     spans = list(_chunks(movie.shape[0], chunk_frames))
     try:
         with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
             for w0 in range(0, len(spans), width):
                 wave = spans[w0 : w0 + width]
-                tasks = [
-                    dask.delayed(_localize_chunk)(_source(frames, movie, a, b), a, *options)
-                    for a, b in wave
-                ]
+                tasks = [chunk_task(_source(frames, movie, a, b), a) for a, b in wave]
                 tables.extend(dask.compute(*tasks, scheduler=chosen))
                 bar.update(wave[-1][1] - wave[0][0])
     finally:
