@@ -114,6 +114,18 @@ def _row_filter(pad, weights, dst):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
+def _row_filter_taps(pad, taps, dst):
+    """`_row_filter` with the weights as a tuple (``taps``): its length is known when the kernel
+    is compiled (once per length), so the taps unroll and each output pixel is summed in a
+    register, twice as fast as one pass per tap."""
+    for j in range(dst.shape[0]):
+        acc = np.float32(0.0)
+        for k in range(len(taps)):
+            acc += taps[k] * pad[j + k]
+        dst[j] = acc
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
 def _pad_edges(pad, r, w):
     for j in range(r):
         pad[j] = pad[r]
@@ -249,10 +261,11 @@ def _is_peak(band, i, j, v, radius, h):
 
 @numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def detect_strips(
-    frames, offset, gain, scale, background, factor, weights, limits, gain_rows, gain_cols,
-    radius, n_strips, rows, cols, values, counts,
+    frames, offset, gain, scale, background, factor, weights, taps, limits, gain_rows,
+    gain_cols, radius, n_strips, rows, cols, values, counts,
 ):  # fmt: skip
     """Local maxima of the band-passed frames in one streaming pass per (frame, strip) task.
+    ``taps`` are ``weights`` as a tuple (`_row_filter_taps`).
 
     A maximum is a pixel above ``limits[t] * gain_rows[i] * gain_cols[j]`` (the noise grows at
     the edges, `latentz.detect.edge_noise_gain`) that is the largest within ``radius`` px
@@ -283,7 +296,7 @@ def detect_strips(
             row = _clip(v, h)
             _photon_row(frames[t, row], offset, gain, scale, row, pad, r)
             _pad_edges(pad, r, w)
-            _row_filter(pad, weights, ring[(v + ring_n) % ring_n])
+            _row_filter_taps(pad, taps, ring[(v + ring_n) % ring_n])
         ready = first  # next band-passed row to compute
         last = -2  # no block row read yet
         limit = limits[t]
@@ -293,7 +306,7 @@ def detect_strips(
                 row = _clip(ready + r, h)
                 _photon_row(frames[t, row], offset, gain, scale, row, pad, r)
                 _pad_edges(pad, r, w)
-                _row_filter(pad, weights, ring[(ready + r) % ring_n])
+                _row_filter_taps(pad, taps, ring[(ready + r) % ring_n])
                 pos = min(max((ready + 0.5) / factor - 0.5, 0.0), hs - 1.0)
                 r0 = int(math.floor(pos))
                 if r0 != last:  # background rows, upsampled along the row once per block row;

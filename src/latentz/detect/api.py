@@ -489,6 +489,7 @@ def _maxima(
     weights = filter_plan(chunk.sigma).weights
     gain_rows = edge_noise_gain(height, weights).astype(np.float32)
     gain_cols = edge_noise_gain(width, weights).astype(np.float32)
+    taps = tuple(chunk.weights)  # np.float32 each
     counts = np.zeros(n * strips, np.int64)
     # room for a maximum per 32 x 32 px (a fuller task is rerun with room for its count)
     cap = max(256, height * width // (strips * _PIXELS_PER_MAXIMUM))
@@ -497,8 +498,8 @@ def _maxima(
         cols = np.empty((n * strips, cap), np.int64)
         values = np.empty((n * strips, cap), np.float32)
         _k.detect_strips(
-            *chunk.args, limits, gain_rows, gain_cols, min_distance, strips, rows, cols, values,
-            counts,
+            *chunk.args, taps, limits, gain_rows, gain_cols, min_distance, strips, rows, cols,
+            values, counts,
         )  # fmt: skip
         if counts.max(initial=0) <= cap:
             break
