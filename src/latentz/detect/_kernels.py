@@ -82,7 +82,7 @@ def block_means(frames, offset, gain, scale, factor, out):
     """``out[t, R, C]``: mean photoelectrons of ``frames[t]`` over block ``R, C`` of ``factor`` x
     ``factor`` pixels (partial blocks at the far edges average the pixels they hold)."""
     n, h, w = frames.shape
-    hs, ws = out.shape[1], out.shape[2]
+    hs = out.shape[1]
     for task in numba.prange(n * hs):
         t = task // hs
         big = task % hs
@@ -90,13 +90,26 @@ def block_means(frames, offset, gain, scale, factor, out):
         r1 = min(big * factor + factor, h)
         for i in range(big * factor, r1):
             _add_photon_row(frames[t, i], offset, gain, scale, i, acc)
-        rows = r1 - big * factor
-        for c in range(ws):
-            c1 = min(c * factor + factor, w)
-            total = 0.0
-            for j in range(c * factor, c1):
-                total += acc[j]
-            out[t, big, c] = total / (rows * (c1 - c * factor))
+        _block_row_means(acc, factor, r1 - big * factor, out[t, big])
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _block_row_means(acc, factor, rows, out):
+    """``out[C]``: the sums of ``rows`` rows in ``acc`` over blocks of ``factor`` columns, as
+    means per pixel (float32 sums; the whole blocks first, then a partial one at the end)."""
+    w = acc.shape[0]
+    whole = w // factor
+    inverse = np.float32(1.0 / (rows * factor))
+    for c in range(whole):
+        total = np.float32(0.0)
+        for m in range(factor):
+            total += acc[c * factor + m]
+        out[c] = total * inverse
+    if whole < out.shape[0]:
+        total = np.float32(0.0)
+        for j in range(whole * factor, w):
+            total += acc[j]
+        out[whole] = total / np.float32(rows * (w - whole * factor))
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
