@@ -47,14 +47,16 @@ def test_never_in_focus_is_culled_with_its_reason(calibrated):
         assert column in table
 
 
-def _independent_emitters(cal, n: int, *, seed: int, **kwargs) -> tuple[pd.DataFrame, np.ndarray]:
+def _independent_emitters(
+    cal, n: int, *, seed: int, z_readout: str = "shape", **kwargs
+) -> tuple[pd.DataFrame, np.ndarray]:
     """``n`` emitters at random places (not calibration particles), each in focus at piezo 0,
-    through ±2 µm; their fitted spots localized by ``cal``, and their true z on the calibration's
-    tilt-corrected axis (the piezo minus the plane at them)."""
+    through ±2 µm; their fitted spots localized by ``cal`` (with ``z_readout``), and their true
+    z on the calibration's tilt-corrected axis (the piezo minus the plane at them)."""
     positions = np.random.default_rng(seed).uniform(0, 500, (n, 2))
     test, _ = make_traces(n, z_nm=np.arange(-2000.0, 2000.1, 100.0), z_f=np.zeros(n),
                           positions=positions, seed=seed, **kwargs)  # fmt: skip
-    out = cal.apply(traces_table(test))
+    out = cal.apply(traces_table(test), z_readout=z_readout)
     return out, np.tile(test.z_nm, n) - cal.plane(out["x"] * 100, out["y"] * 100)
 
 
@@ -71,12 +73,14 @@ def _normalised_rms(out: pd.DataFrame, z_true: np.ndarray) -> tuple[float, float
     )
 
 
-def test_independent_emitters_localize_with_nearest_models():
+@pytest.mark.parametrize("z_readout", ["shape", "joint"])
+def test_independent_emitters_localize_with_nearest_models(z_readout):
     """Each particle focuses ±150 nm off its neighbours (white noise), so an emitter elsewhere
-    errs by its nearest particle's offset, which the reported z error must hold."""
+    errs by its nearest particle's offset, which the reported z error must hold, from the one
+    shape value or from the joint readout."""
     traces, _ = make_traces(200, seed=30)
     cal = calibrate_traces(traces, camera=CAM, shape="rho_A", field_model="nearest")
-    out, z_true = _independent_emitters(cal, 200, seed=31)
+    out, z_true = _independent_emitters(cal, 200, seed=31, z_readout=z_readout)
     assert out["in_range"].mean() > 0.5
     ratio, tol = _normalised_rms(out, z_true)
     assert ratio == pytest.approx(1.0, abs=tol)

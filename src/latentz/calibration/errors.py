@@ -3,9 +3,11 @@
 
 Three independent parts, added in quadrature:
 
-1. **the fit's precision**: the Cramér–Rao errors of the spot's fitted wx, wy, ρ, A propagated to
-   its shape value s, then through the slope of the inverse function dz/ds; laterally, the fit's
-   own x, y error, plus the slope of Δx'(z), Δy'(z) times the z error;
+1. **the fit's precision**: with the joint readout, the curvature of its distance to the
+   calibration curves (:mod:`latentz.calibration.readout`); with the one shape value, the
+   errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the slope of the
+   inverse function dz/ds; laterally, the fit's own x, y error, plus the slope of Δx'(z),
+   Δy'(z) times the z error;
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter); laterally also its lack of fit, the part of the residual σ
@@ -41,7 +43,8 @@ import numpy as np
 import pandas as pd
 
 __all__ = [
-    "field_sigma", "field_line", "FieldLine", "combine", "fit_sigma_s", "measured_noise",
+    "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
+    "measured_noise",
 ]  # fmt: skip
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
@@ -178,31 +181,26 @@ def combine(*parts: np.ndarray) -> np.ndarray:
     return np.sqrt(total)
 
 
-def fit_sigma_s(
-    shape: str,
+def fit_covariance(
     params: np.ndarray,
     errors: np.ndarray,
     correlations: np.ndarray | None,
     *,
     roi_size: int,
     readnoise: float,
-    theta: float | None,
-    amplitude_ref: np.ndarray,
 ) -> np.ndarray:
-    """The fit's 1σ error of each spot's shape value s, with the parameters' covariances.
+    """Covariance (n, 4, 4) of each spot's fitted (amplitude, wx, wy, ρ).
 
     ``params`` (n, 7) are the fitted x, y, amplitude, background, wx, wy, ρ (photoelectrons,
     px); ``errors`` (n, 4) the standard deviations of amplitude, wx, wy, ρ (the fit's ``*_err``
     columns: the sandwich covariance of :mod:`latentz.fit.robust`); ``correlations`` (n, 6) their
-    correlations (:data:`latentz.fit.api.CORRELATED`, the fit's ``*_corr`` columns). The
-    gradient of s in (amplitude, wx, wy, ρ) is carried through that covariance: wx and wy are
-    strongly correlated (about +0.6), and so are ρ and the widths out of focus, which the
-    diagonal alone misses by up to a factor of 1.5. Where the correlations are not given (a
-    table without ``*_corr`` columns) they are those of the Cramér–Rao covariance of the
-    Gaussian at the fitted parameters centred in a ROI of ``roi_size`` (the information hardly
-    depends on the position); zero where that is not usable either.
+    correlations (:data:`latentz.fit.api.CORRELATED`, the fit's ``*_corr`` columns). wx and wy
+    are strongly correlated (about +0.6), and so are ρ and the widths out of focus. Where the
+    correlations are not given (a table without ``*_corr`` columns) they are those of the
+    Cramér–Rao covariance of the Gaussian at the fitted parameters centred in a ROI of
+    ``roi_size`` (the information hardly depends on the position); zero where that is not
+    usable either.
     """
-    from latentz.calibration.shape import shape_value
     from latentz.fit._model import PARAMS, covariance
     from latentz.fit.api import CORRELATED, correlations_of
 
@@ -219,9 +217,41 @@ def fit_sigma_s(
         p[:, 0] = p[:, 1] = (roi_size - 1) / 2
         corr[missing] = correlations_of(covariance(p, shape=roi_size, readnoise=readnoise))
     corr = np.where(np.isfinite(corr), corr, 0.0)
+    r = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    for c, (a, b) in enumerate(CORRELATED):
+        ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
+        r[:, ka, kb] = r[:, kb, ka] = corr[:, c]
+    return sd[:, :, None] * r * sd[:, None, :]
+
+
+def fit_sigma_s(
+    shape: str,
+    params: np.ndarray,
+    errors: np.ndarray,
+    correlations: np.ndarray | None,
+    *,
+    roi_size: int,
+    readnoise: float,
+    theta: float | None,
+    amplitude_ref: np.ndarray,
+) -> np.ndarray:
+    """The fit's 1σ error of each spot's shape value s, with the parameters' covariances.
+
+    The gradient of s in (amplitude, wx, wy, ρ) is carried through their covariance
+    (:func:`fit_covariance`, of the same arguments): the diagonal alone misses by up to a
+    factor of 1.5.
+    """
+    from latentz.calibration.shape import shape_value
+    from latentz.fit._model import PARAMS
+
+    params = np.array(params, dtype=np.float64)
+    n = len(params)
+    cov = fit_covariance(params, errors, correlations, roi_size=roi_size, readnoise=readnoise)
+    sd = np.sqrt(np.diagonal(cov, 0, 1, 2))
     ref = np.broadcast_to(np.asarray(amplitude_ref, dtype=np.float64), (n,))
     grad = np.zeros((n, 4))
-    for k, i in enumerate(which):
+    for k, name in enumerate(("amplitude", "wx", "wy", "rho")):
+        i = PARAMS.index(name)
         step = np.maximum(np.abs(sd[:, k]), 1e-9) * 1e-3
         hi, lo = params.copy(), params.copy()
         hi[:, i] += step
@@ -229,11 +259,7 @@ def fit_sigma_s(
         value = [shape_value(shape, q[:, 4], q[:, 5], q[:, 6], q[:, 2], theta=theta,
                              amplitude_ref=ref) for q in (hi, lo)]  # fmt: skip
         grad[:, k] = (value[0] - value[1]) / (2 * step)
-    g = grad * sd  # gradient in units of each parameter's σ
-    variance = np.sum(g**2, axis=1)
-    for c, (a, b) in enumerate(CORRELATED):
-        ka, kb = which.index(PARAMS.index(a)), which.index(PARAMS.index(b))
-        variance = variance + 2 * corr[:, c] * g[:, ka] * g[:, kb]
+    variance = np.einsum("ni,nij,nj->n", grad, cov, grad)
     return np.sqrt(np.maximum(variance, 0.0))
 
 

@@ -3,8 +3,10 @@
 A :class:`Calibration` holds the traces and local models of every calibration particle on the
 tilt-corrected z axis (z = 0 is the focal surface of the calibration particles after levelling)
 and the widefield models built from them. :meth:`Calibration.apply` localizes spots in 3D: z from
-the field model of z at the spot's shape value, then the lateral correction at that z; shape
-values outside what the particles cover are flagged, never extrapolated.
+the field model of z at the spot's shape value (or, with ``z_readout="joint"``, the value whose
+z its fitted wx, wy, ρ fit best jointly, :mod:`latentz.calibration.readout`), then the lateral
+correction at that z; shape values outside what the particles cover are flagged, never
+extrapolated.
 :meth:`Calibration.local_z` and :meth:`Calibration.local_delta` evaluate every particle's models
 at once, for the widefield models. The file layout is described in docs/file-format.md.
 """
@@ -31,6 +33,7 @@ from latentz.calibration.errors import (
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
+from latentz.calibration.readout import SHAPE_PARAMS, JointZ, joint_z, shape_covariance
 from latentz.calibration.reference import ReferenceField
 from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value, uses_amplitude
@@ -46,6 +49,8 @@ FIELD_MODELS = FIELD_MODEL_KINDS
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
 SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
+#: How :meth:`Calibration.apply` reads z from a spot's shape.
+Z_READOUTS = ("joint", "shape")
 _ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
 _PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
 
@@ -530,11 +535,12 @@ class Calibration:
 
     def _dimming_shift(
         self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
-        ref: np.ndarray,
+        ref: np.ndarray, of: Callable[..., np.ndarray] | None = None,
     ) -> np.ndarray:  # fmt: skip
         """How much brighter-than-the-spot calibration images shift the spots' shape values
-        (:func:`~latentz.calibration.dimming.shape_shift`), from particle ``p``'s refits at the
-        spots' first z; 0 where that is unknown.
+        (:func:`~latentz.calibration.dimming.shape_shift`; ``of(amplitude, wx, wy, rho)``, if
+        given, in place of the shape value), from particle ``p``'s refits at the spots' first
+        z; 0 where that is unknown.
 
         Where the calibration particles' brightness follows their size (their heights were
         taken off, :mod:`latentz.calibration.heights`), spots within the calibration's own range
@@ -568,7 +574,7 @@ class Calibration:
             # the start fades from the edge back to the particle's own c as far again beyond it
             with np.errstate(invalid="ignore", divide="ignore"):
                 c_from = np.clip(edge**2 / c_spot, c_own, edge)
-        shift = shape_shift(shape_of, trace_at, c_spot, c_own, c_from=c_from)
+        shift = shape_shift(of or shape_of, trace_at, c_spot, c_own, c_from=c_from)
         return np.where(np.isfinite(shift), shift, 0.0)
 
     def _transfer_sigma(self, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
@@ -615,18 +621,80 @@ class Calibration:
         _, idx = self._cache["tree"].query(points)
         return self.kept[idx]
 
+    def joint_readout(
+        self, spots: pd.DataFrame, p: np.ndarray, shift: np.ndarray | None = None
+    ) -> JointZ:
+        """The joint readout (:func:`~latentz.calibration.readout.joint_z`) of ``spots`` on
+        their particles ``p``, weighted by the covariance of their fits (:func:`~latentz.
+        calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr`` columns where
+        they carry them); ``shift`` (n, 3), if given, is taken off their fitted wx, wy, ρ."""
+        params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
+        errors = corr = None
+        if all(c in spots.columns for c in _ERROR_COLUMNS):
+            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
+            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
+        cov = shape_covariance(params, errors, corr, roi_size=self.roi_size,
+                               readnoise=self.camera.readnoise)  # fmt: skip
+        fitted = params[:, 4:7] if shift is None else params[:, 4:7] - shift
+        return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov)
+
+    def _usable_scatter(self) -> np.ndarray:
+        """(n, 3) RMS scatter of each particle's wx, wy, ρ traces about its curves
+        (:meth:`curves_at`) over its usable planes (:attr:`usable_planes`): far from focus the
+        fitted widths of ring images jump by far more, where no spot is read."""
+        if "usable_scatter" not in self._cache:
+            self.curves_at(0, 0.0)  # the curves, computed once
+            use = self.usable_planes
+            with np.errstate(invalid="ignore"):
+                self._cache["usable_scatter"] = np.column_stack([
+                    np.sqrt(row_mean(np.where(use, (self.traces[k] - self._cache["curves"][k]) ** 2,
+                                              np.nan)))
+                    for k in SHAPE_PARAMS])  # fmt: skip
+        return self._cache["usable_scatter"]
+
+    def _joint_shape(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
+                     ref: np.ndarray) -> tuple[np.ndarray, JointZ]:  # fmt: skip
+        """The joint readout of ``spots`` and the shape value of its z (:meth:`_shape_at`).
+        Where the calibration has dimmed refits, the readout is repeated with the fitted wx, wy,
+        ρ corrected for the spots' background ratio (:meth:`_dimming_shift` of each) at the
+        first readout's z."""
+        joint = self.joint_readout(spots, p)
+        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+            background = spots["background"].to_numpy(float)
+            shift = np.column_stack([
+                self._dimming_shift(cols["amplitude"], background, p, joint.z_nm, ref,
+                                    of=lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k])
+                for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+            joint = self.joint_readout(spots, p, shift)
+        return self._shape_at(p, joint.z_nm), joint
+
+    def _shape_at(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The shape value whose inverse z(s) of particle ``p`` gives ``z`` (nm): Newton steps
+        on z(s) from the forward model s(z); NaN where z is outside the inverse's range."""
+        model = self.local.shapes[self.shape]
+        inverse, slope = model.inverse[p], self._error_model("z")[2][p]
+        target = np.where(np.isfinite(z), z, 0.0)
+        s = model.forward[p](target)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            for _ in range(4):
+                s = s - (inverse(s) - target) / slope(s)
+            hit = np.abs(inverse(s) - target) < 0.5
+        return np.where(np.isfinite(z) & hit & inverse.contains(s) & inverse.valid, s, np.nan)
+
     def apply(
         self,
         spots: pd.DataFrame,
         *,
         amplitude_reference: str = "calibration",
         error_parts: bool = False,
+        z_readout: str = "shape",
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
-        z comes from the field model of z(x', y'; s) at the spot's shape value s, and the
-        lateral correction from the field models of Δx', Δy' at that z (paper Fig. 4); with
-        ``field_model="nearest"``, from the nearest calibration particle's local models.
+        z comes from the field model of z(x', y'; s) at the spot's shape value s (see
+        ``z_readout``), and the lateral correction from the field models of Δx', Δy' at that z
+        (paper Fig. 4); with ``field_model="nearest"``, from the nearest calibration particle's
+        local models.
         Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
         nearest particle's local model errors and the field model's cross-validated error
         (:mod:`latentz.calibration.errors`); the spots' own part is scaled by
@@ -643,6 +711,13 @@ class Calibration:
             the calibration particles, whose own spread in brightness ``z_err_nm`` then
             includes), or that of each emitter's own track (the spot with the smallest |ρ| in
             its ``particle`` group).
+        z_readout : {"shape", "joint"}
+            How the spot's shape becomes z: "shape", its one shape value; or "joint", its fitted
+            wx, wy, ρ against its particle's curves of the three, weighted by their covariance
+            (:mod:`~latentz.calibration.readout`), passed on as the shape value of that z.
+            With "joint", where a second z fits within Δχ² < 1 (the sign of defocus unresolved:
+            weak astigmatism, dim spots) the better one is reported and the fit's part of
+            ``z_err_nm`` reaches the other.
         error_parts : bool
             Also return what ``z_err_nm`` is made of: ``z_err_fit_nm``, the spot's own fit
             precision (NaN for spots without ``*_err`` columns), and ``z_err_field_nm``, the
@@ -661,6 +736,7 @@ class Calibration:
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
         check_widths(spots[["wx", "wy"]].to_numpy(dtype=np.float64), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
+        check_choice("z_readout", z_readout, Z_READOUTS)
         shape = self.shape
         cols = {c: spots[c].to_numpy(dtype=np.float64) for c in SPOT_COLUMNS}
         # a spot with any non-finite fit value is a broken fit: never in range
@@ -668,22 +744,20 @@ class Calibration:
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
-        s = shape_value(
-            shape,
-            cols["wx"],
-            cols["wy"],
-            cols["rho"],
-            cols["amplitude"],
-            theta=self.local.theta,
-            amplitude_ref=ref,
-        )
+        joint = None
+        if z_readout == "joint":
+            s, joint = self._joint_shape(spots, cols, p, ref)
+            ref_scatter = 0.0  # z does not use the amplitude
+        else:
+            s = shape_value(shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
+                            theta=self.local.theta, amplitude_ref=ref)  # fmt: skip
         z, shifts, in_range = self._locate(s, p, cols, located)
-        if "background" in spots.columns and "dim0_wx" in self.traces.data:
+        if joint is None and "background" in spots.columns and "dim0_wx" in self.traces.data:
             s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
         at = row_weights(self.local.z_nm, p, z)
-        z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter)
+        z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
         out, px = spots.copy(), self.camera.pixel_size_nm
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
@@ -744,19 +818,25 @@ class Calibration:
         at: tuple[np.ndarray, np.ndarray, np.ndarray],
         ref: np.ndarray,
         ref_scatter: float,
+        joint: JointZ | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """σ_z (nm) before the field model's part: the spot's own (propagated from its fit
         errors where it carries them, else the calibration's at z) with the particle's model
         error, and the amplitude reference's scatter; and the fit's part alone (NaN where the
-        spots carry no fit errors)."""
+        spots carry no fit errors). With the ``joint`` readout, the fit's part is its σ or,
+        where larger, its spread over a second minimum."""
         model_part = self._model_sigma("z", p, z, at)
         fit_part = np.full(len(spots), np.nan)
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
-            fit_part = self.noise_scale * self._fit_part_z(params, errors, corr, p,
-                                                           np.where(in_range, s, 0.0), ref)
+            if joint is None:
+                fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0),
+                                            ref)  # fmt: skip
+            else:
+                fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
+            fit_part = self.noise_scale * fit_part
             z_err = np.hypot(fit_part, model_part)
         else:
             z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
