@@ -37,10 +37,15 @@ are added, while the error between particles grows.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "fit_covariance", "fit_sigma_s", "measured_noise"]
+__all__ = [
+    "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
+    "measured_noise",
+]  # fmt: skip
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -90,11 +95,41 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
     difference clipped at zero): otherwise they are counted twice and grow with distance.
     """
+    return field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm).sigma(
+        z_nm, distance_px
+    )
+
+
+class FieldLine(NamedTuple):
+    """The squared error line ``a² + b² d²`` of :func:`field_sigma` in each z bin: bin centres
+    (nm), ``a²`` and ``b²`` (nm², nm² / px²) at them, the share of ``a²`` a spot meets (1 or
+    1/2) and the squared distance (px²) below which the line is not extrapolated. Fixed for a
+    calibration: made once (:func:`field_line`), read for any spots (:meth:`sigma`)."""
+
+    centres: np.ndarray
+    floor2: np.ndarray
+    slope2: np.ndarray
+    floor_share: float
+    least_d2: float
+
+    def sigma(self, z_nm: np.ndarray, distance_px: np.ndarray) -> np.ndarray:
+        """The field-model error (nm, 1σ) at each z (nm) and distance (px); NaN z gives NaN."""
+        z = np.asarray(z_nm, dtype=np.float64)
+        if self.centres.size == 0:
+            return np.full(z.shape, np.nan)
+        floor2 = np.interp(z, self.centres, self.floor2) * self.floor_share
+        slope2 = np.interp(z, self.centres, self.slope2)
+        d2 = np.maximum(np.asarray(distance_px, dtype=np.float64) ** 2, self.least_d2)
+        return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
+
+
+def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 250.0,
+               model_nm: np.ndarray | None = None) -> FieldLine:  # fmt: skip
+    """The :class:`FieldLine` of :func:`field_sigma` (same arguments, less the spots')."""
     use = ((table["model"] == model) & table["in_range"]).to_numpy()
     rows = table[use]
-    z = np.asarray(z_nm, dtype=np.float64)
     if len(rows) == 0:
-        return np.full(z.shape, np.nan)
+        return FieldLine(np.empty(0), np.empty(0), np.empty(0), 1.0, 0.0)
     order = np.argsort(rows["z_nm"].to_numpy())
     zz = rows["z_nm"].to_numpy()[order]
     err2 = rows[f"err_{axis}_nm"].to_numpy()[order] ** 2
@@ -113,13 +148,12 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
         values[-1] = _floor_and_slope(err2[last], dist2[last])
-    floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
-    if model not in SMOOTHING and axis == "z":
-        floor2 = floor2 / 2  # the spot's neighbours' heights, not the held-out particle's too
-    d2 = np.asarray(distance_px, dtype=np.float64) ** 2
-    if axis != "z":  # no extrapolation below the distances held out (see above)
-        d2 = np.maximum(d2, np.quantile(dist2, 0.1))
-    return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
+    floor2, slope2 = np.asarray(values).T
+    # in z, the spot's neighbours' heights, not the held-out particle's too (see field_sigma)
+    share = 0.5 if model not in SMOOTHING and axis == "z" else 1.0
+    # laterally no extrapolation below the distances held out (see field_sigma)
+    least_d2 = float(np.quantile(dist2, 0.1)) if axis != "z" else 0.0
+    return FieldLine(np.asarray(centres), floor2, slope2, share, least_d2)
 
 
 def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
