@@ -14,12 +14,14 @@ Cases, all with a camera (offset 100 ADU, gain 1, read noise 1.5 e-):
 - ``fit_rois``: `lz.fit_rois` on 20 000 ROIs of 11 x 11 px (ROIs per second).
 
     python benchmarks/bench_camera_rate.py --before /tmp/before/src [--frames 16] [--rounds 3]
-        [--cases 30 30-tiff 500 calibrated tracking fit_rois]
+        [--turns 1] [--threads N] [--cases 30 30-tiff 500 calibrated tracking fit_rois]
 
 ``--before`` is the ``src`` folder of the tree to compare with, for example
 ``git archive main src | tar -x -C /tmp/before``. Writes one results file per set of cases,
 ``bench_camera_rate_<cases>.md`` beside the other results: frames/s as the median (min-max) over
-the rounds of each tree, and the ratio of the medians.
+the rounds of each tree, and the ratio of the medians. ``--threads 1`` runs the children on one
+thread (``NUMBA_NUM_THREADS``): frames per CPU second then hold no threads waiting for each other,
+the comparison of two trees that a loaded machine disturbs least.
 """
 
 from __future__ import annotations
@@ -152,8 +154,10 @@ def child(case: str, folder: Path, rounds: int) -> dict:
     return {"wall": wall, "cpu": cpu, "rows": rows, "units": units}
 
 
-def run_child(tree: Path, case: str, folder: Path, rounds: int) -> dict:
+def run_child(tree: Path, case: str, folder: Path, rounds: int, threads: int | None) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree)}
+    if threads is not None:
+        env["NUMBA_NUM_THREADS"] = str(threads)
     out = subprocess.run(
         [sys.executable, __file__, "--child", case, "--inputs", str(folder), "--rounds",
          str(rounds)],
@@ -174,7 +178,7 @@ def compare(args: argparse.Namespace) -> None:
             n_rows = {}
             for _ in range(args.turns):  # the trees take turns
                 for name, tree in trees.items():
-                    result = run_child(tree, case, folder, args.rounds)
+                    result = run_child(tree, case, folder, args.rounds, args.threads)
                     got[name] += [result["units"] / w for w in result["wall"]]
                     got[f"cpu_{name}"] += [result["units"] / c for c in result["cpu"]]
                     n_rows[name] = result["rows"]
@@ -190,13 +194,16 @@ def compare(args: argparse.Namespace) -> None:
             print(rows[-1], flush=True)
     notes = (
         f"2048 x 2048 uint16 frames, {args.frames} per run; {args.rounds} rounds per child "
-        f"process after a warm-up, {args.turns} child(ren) per tree taking turns; median "
+        f"process after a warm-up, {args.turns} child(ren) per tree taking turns, "
+        f"{args.threads or 'all'} thread(s) each; median "
         f"(min-max) over all rounds. `before`: {trees['before']}. The target is {PAPER_HZ} Hz; "
         "'per CPU s' divides by the CPU time of all threads (what a loaded machine leaves)."
     )
     name = "bench_camera_rate"
     if list(args.cases) != list(CASES):  # a subset of the cases keeps its own file
         name += "_" + "_".join(c.replace("-", "") for c in args.cases)
+    if args.threads is not None:
+        name += f"_{args.threads}thread"
     write_results(f"{name}.md", "`lz.localize` on 2048 x 2048 uint16 camera frames",
                   started, notes, pd.DataFrame(rows).to_markdown(index=False))  # fmt: skip
 
@@ -207,6 +214,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=16)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--turns", type=int, default=1, help="child processes per tree")
+    parser.add_argument("--threads", type=int, help="numba threads per child (default: all)")
     parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     parser.add_argument("--child", choices=CASES, help=argparse.SUPPRESS)
     parser.add_argument("--inputs", type=Path, help=argparse.SUPPRESS)

@@ -38,7 +38,7 @@ import pandas as pd
 from _rounds import machine, write_results
 from scipy.spatial import cKDTree
 
-from latentz.localization import quality
+from latentz.localization import mismatch, quality
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
 from latentz.validation.molecules import bead_calibration, localized_molecules, true_positives
@@ -250,7 +250,7 @@ def localized(seeds: range, n_frames: int, cache: Path | None) -> list:
     for locs, truth, cal in raw:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            judged = quality.check_calibration_fits(quality.assess(locs, cal))
+            judged = mismatch.check_calibration_fits(quality.assess(locs, cal), cal)
         sets.append((judged.assign(neighbour_px=neighbour_px(judged)), truth))
     return sets
 

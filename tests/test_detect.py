@@ -17,6 +17,7 @@ from latentz.detect.api import (
     edge_noise_gain,
     filter_plan,
     find_peaks,
+    merge_maxima,
     noise_level,
 )
 from latentz.fit import render_rois
@@ -171,6 +172,36 @@ def test_wide_spots_on_large_frames_give_one_detection_each():
     assert hits == 60
     # expected false maxima at the area-scaled threshold: about 0.6 per frame at most here
     assert false <= 3
+
+
+def test_merging_does_not_depend_on_the_order_of_the_maxima():
+    # the kernels take each frame's maxima in row order (the CPU kernels write them so, the GPU
+    # in any order): wide spots on noise, whose ripples are merged, in row and in shuffled order
+    from latentz.detect._kernels import valleys_in_band
+
+    rng = np.random.default_rng(21)
+    points = list(zip(rng.uniform(5, 250, 60), rng.uniform(5, 250, 60), strict=True))
+    frames = [_spot_frame(points, (256, 256), 3000.0, 20.0, s, widths=2.8) for s in range(2)]
+    band = np.stack([band_pass(f) for f in frames]).astype(np.float32)
+    noise = np.array([noise_level(b) for b in band])
+    frame, rows, cols = np.nonzero(band > 2.0 * noise[:, None, None])  # every pixel above 2 sd
+    values = band[frame, rows, cols].astype(np.float64)
+
+    def flags(order):
+        def valleys(first, second):
+            out = np.empty(len(first))
+            valleys_in_band(band, frame[order], rows[order], cols[order], first, second, out)
+            return out
+
+        return merge_maxima(frame[order], rows[order], cols[order], values[order], noise, 2.8,
+                            15, valleys)  # fmt: skip
+
+    keep, close = flags(np.arange(len(rows)))
+    assert 0 < keep.sum() < len(keep) and close.any()  # ripples dropped, pairs flagged
+    shuffled = rng.permutation(len(rows))
+    keep_shuffled, close_shuffled = flags(shuffled)
+    np.testing.assert_array_equal(keep_shuffled, keep[shuffled])
+    np.testing.assert_array_equal(close_shuffled, close[shuffled])
 
 
 @pytest.mark.parametrize(

@@ -77,3 +77,19 @@ def test_measured_noise_is_not_ruled_by_flat_planes():
     predicted[:, :2] = 3000.0  # the flat ends of each curve
     assert measured_noise(residual, predicted, n_params=5) >= 0.95
     assert measured_noise(residual / 2, predicted, n_params=5) == pytest.approx(0.5, abs=0.03)
+
+
+def test_measured_noise_counts_the_images_each_curve_was_fitted_to():
+    """An order-16 curve fitted to 90 images of scatter 1, of which only the middle 44 count
+    (the usable planes), each predicted at 2: the scale is 0.5. Correcting the residuals for 17
+    parameters among the 44 images that count, instead of the 90 the curve was fitted to,
+    gives 0.60 here."""
+    rng = np.random.default_rng(2)
+    z = np.linspace(-1.0, 1.0, 90)
+    noise = rng.normal(0.0, 1.0, (40, z.size))
+    residual = np.array([y - np.polynomial.Polynomial.fit(z, y, 16)(z) for y in noise])
+    predicted = np.where(np.abs(z) <= 0.48, 2.0, np.nan) * np.ones((40, 1))
+    fitted = np.full(40, z.size)
+    scale = measured_noise(residual, predicted, n_params=17, n_fitted=fitted)
+    # sampling error of an RMS over 40 x 44 images: 0.5 / sqrt(2 x 1760) = 0.008, 3x that
+    assert scale == pytest.approx(0.5, abs=0.025), scale

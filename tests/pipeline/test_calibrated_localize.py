@@ -55,6 +55,7 @@ def test_process_cluster_with_a_camera_and_a_calibration_gives_the_local_table(
     # a TIFF path on worker processes: nothing may be computed through the client before the
     # tasks are built from the path (the lazy reader holds a lock that cannot be pickled)
     distributed = pytest.importorskip("distributed")
+    assert small_calibration.camera is not None  # the camera comes with the calibration
     path = small_microscope.folder / "movie.tif"
     local = lz.localize(path, calibration=small_calibration, chunk_frames=2)
     with (

@@ -82,6 +82,7 @@ def dim_held_out(cal: Calibration, *, ratio: float, rank: int = 1) -> np.ndarray
         def of(a, wx, wy, rho):
             return shape_value(shape, wx, wy, rho, a, theta=local.theta,
                                amplitude_ref=ref[owner])  # fmt: skip
+
         return of
 
     def own(name: str) -> np.ndarray:
@@ -113,16 +114,17 @@ def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """How much the dimming correction errs when it is carried from the nearest particle to a
     spot: ``(z_nm, log_c, sigma_nm)``, the RMS over the kept particles of the held-out error at
     background ratio c (each of :data:`~latentz.calibration.dimming.LEVELS`) minus that of the
-    bright image itself (:func:`dim_held_out`), in z bins :data:`TRANSFER_BIN_NM` wide (bin
-    centres ``z_nm``; bins with fewer than 30 planes merged into the next) by ``log_c``;
+    bright image itself (:func:`dim_held_out`, at the planes :func:`pair_table` counts), in z
+    bins :data:`TRANSFER_BIN_NM` wide (bin centres ``z_nm``; bins with fewer than 30 planes
+    merged into the next) by ``log_c``;
     ``sigma_nm`` (n_levels, n_bins). Empty where there are no refits."""
     from latentz.calibration.dimming import LEVELS
 
     if not all(name in cal.traces.data for name in DIM_COLUMNS):
         return np.zeros(0), np.zeros(0), np.zeros((0, 0))
     z = cal.local.z_nm
-    bright = dim_held_out(cal, ratio=0.0)  # below every particle's own ratio: no shift
-    differences = [dim_held_out(cal, ratio=c) - bright for c in LEVELS]
+    bright = _judged(cal, dim_held_out(cal, ratio=0.0), 1)  # below every particle's own c
+    differences = [_judged(cal, dim_held_out(cal, ratio=c), 1) - bright for c in LEVELS]
     known = np.isfinite(bright) & np.all(np.isfinite(differences), axis=0)
     if known.sum() < _MIN_PER_BIN:
         return np.zeros(0), np.zeros(0), np.zeros((0, 0))
@@ -139,6 +141,25 @@ def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray
             sigmas.append([np.sqrt(np.mean(d[known][order][group] ** 2)) for d in differences])
             group[:] = False
     return np.array(centres), np.log(np.asarray(LEVELS)), np.array(sigmas).T
+
+
+def _judged(cal: Calibration, errors: np.ndarray, rank: int) -> np.ndarray:
+    """:func:`dim_held_out`'s ``errors`` (n, n_z) at ``rank``, NaN where a held-out plane does
+    not count: outside the held-out particle's monotonic range (as crossval holds out) or with
+    its estimate outside the span its partner was imaged over (as ``apply`` requires). There
+    the partner's inverse is flat or extrapolated and its error says nothing of a spot's."""
+    rows, partners, _ = _partners(cal, rank)
+    out = np.full_like(errors, np.nan)
+    if rows.size == 0:
+        return out
+    z = cal.local.z_nm[rows]
+    lo, hi = cal.z_span_nm[partners, :1], cal.z_span_nm[partners, 1:]
+    own = cal.local.shapes[cal.shape].z_range[rows]  # its monotonic range, as crossval's
+    err = errors[rows]
+    with np.errstate(invalid="ignore"):
+        known = (z >= own[:, :1]) & (z <= own[:, 1:]) & (z + err >= lo) & (z + err <= hi)
+    out[rows] = np.where(known, err, np.nan)
+    return out
 
 
 def pair_table(cal: Calibration) -> pd.DataFrame:
@@ -159,14 +180,8 @@ def pair_table(cal: Calibration) -> pd.DataFrame:
     for rank in PAIR_RANKS:
         rows, partners, distance = _partners(cal, rank)
         z = cal.local.z_nm[rows]
-        lo, hi = (np.repeat(cal.z_span_nm[partners, k], n_z).reshape(z.shape) for k in (0, 1))
-        own = cal.local.shapes[cal.shape].z_range[rows]  # its monotonic range, as crossval's
-        planes = (z >= own[:, :1]) & (z <= own[:, 1:])
         for c in (LEVELS if refits else (0.0,)) if rows.size else ():
-            err = dim_held_out(cal, ratio=c, rank=rank)[rows]
-            with np.errstate(invalid="ignore"):
-                known = planes & (z + err >= lo) & (z + err <= hi)
-            err = np.where(known, err, np.nan).ravel()
+            err = _judged(cal, dim_held_out(cal, ratio=c, rank=rank), rank)[rows].ravel()
             frames.append(pd.DataFrame({
                 "c": c, "model": "pairs", "particle": np.repeat(rows, n_z),
                 "z_nm": z.ravel(), "distance_px": np.repeat(distance, n_z),

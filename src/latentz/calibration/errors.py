@@ -37,10 +37,15 @@ are added, while the error between particles grows.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pandas as pd
 
-__all__ = ["field_sigma", "combine", "fit_covariance", "fit_sigma_s", "measured_noise"]
+__all__ = [
+    "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
+    "measured_noise",
+]  # fmt: skip
 
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -90,11 +95,41 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
     difference clipped at zero): otherwise they are counted twice and grow with distance.
     """
+    return field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm).sigma(
+        z_nm, distance_px
+    )
+
+
+class FieldLine(NamedTuple):
+    """The squared error line ``a² + b² d²`` of :func:`field_sigma` in each z bin: bin centres
+    (nm), ``a²`` and ``b²`` (nm², nm² / px²) at them, the share of ``a²`` a spot meets (1 or
+    1/2) and the squared distance (px²) below which the line is not extrapolated. Fixed for a
+    calibration: made once (:func:`field_line`), read for any spots (:meth:`sigma`)."""
+
+    centres: np.ndarray
+    floor2: np.ndarray
+    slope2: np.ndarray
+    floor_share: float
+    least_d2: float
+
+    def sigma(self, z_nm: np.ndarray, distance_px: np.ndarray) -> np.ndarray:
+        """The field-model error (nm, 1σ) at each z (nm) and distance (px); NaN z gives NaN."""
+        z = np.asarray(z_nm, dtype=np.float64)
+        if self.centres.size == 0:
+            return np.full(z.shape, np.nan)
+        floor2 = np.interp(z, self.centres, self.floor2) * self.floor_share
+        slope2 = np.interp(z, self.centres, self.slope2)
+        d2 = np.maximum(np.asarray(distance_px, dtype=np.float64) ** 2, self.least_d2)
+        return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
+
+
+def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 250.0,
+               model_nm: np.ndarray | None = None) -> FieldLine:  # fmt: skip
+    """The :class:`FieldLine` of :func:`field_sigma` (same arguments, less the spots')."""
     use = ((table["model"] == model) & table["in_range"]).to_numpy()
     rows = table[use]
-    z = np.asarray(z_nm, dtype=np.float64)
     if len(rows) == 0:
-        return np.full(z.shape, np.nan)
+        return FieldLine(np.empty(0), np.empty(0), np.empty(0), 1.0, 0.0)
     order = np.argsort(rows["z_nm"].to_numpy())
     zz = rows["z_nm"].to_numpy()[order]
     err2 = rows[f"err_{axis}_nm"].to_numpy()[order] ** 2
@@ -113,13 +148,12 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     if first < zz.size:  # a short last run joins the last bin
         last = zz >= centres[-1]
         values[-1] = _floor_and_slope(err2[last], dist2[last])
-    floor2, slope2 = (np.interp(z, np.asarray(centres), v) for v in np.asarray(values).T)
-    if model not in SMOOTHING and axis == "z":
-        floor2 = floor2 / 2  # the spot's neighbours' heights, not the held-out particle's too
-    d2 = np.asarray(distance_px, dtype=np.float64) ** 2
-    if axis != "z":  # no extrapolation below the distances held out (see above)
-        d2 = np.maximum(d2, np.quantile(dist2, 0.1))
-    return np.where(np.isfinite(z), np.sqrt(floor2 + slope2 * d2), np.nan)
+    floor2, slope2 = np.asarray(values).T
+    # in z, the spot's neighbours' heights, not the held-out particle's too (see field_sigma)
+    share = 0.5 if model not in SMOOTHING and axis == "z" else 1.0
+    # laterally no extrapolation below the distances held out (see field_sigma)
+    least_d2 = float(np.quantile(dist2, 0.1)) if axis != "z" else 0.0
+    return FieldLine(np.asarray(centres), floor2, slope2, share, least_d2)
 
 
 def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
@@ -229,16 +263,25 @@ def fit_sigma_s(
     return np.sqrt(np.maximum(variance, 0.0))
 
 
-def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_params: int) -> float:
+def measured_noise(
+    residual_nm: np.ndarray,
+    predicted_nm: np.ndarray,
+    *,
+    n_params: int,
+    n_fitted: np.ndarray | None = None,
+) -> float:
     """How much less the calibration's own images scatter in z than their fit errors say.
 
     ``residual_nm`` (n, n_z): each calibration image's z minus its particle's z(s) curve;
     ``predicted_nm`` (n, n_z): the fit's part of ``z_err_nm`` for that image, as
     :meth:`~latentz.calibration.Calibration.apply` computes it for a spot (NaN for images not to
-    count); ``n_params``: the parameters of each curve. Returns r, the root mean square of each
+    count); ``n_params``: the parameters of each curve; ``n_fitted`` (n,): the images each curve
+    was fitted to (by default those that count). Returns r, the root mean square of each
     image's residual over its predicted error (each particle's squares corrected by
-    ``m / (m − n_params)`` for its ``m`` residuals), where r is below 1 by more than twice its
-    sampling error (``1/sqrt(2 m)`` for ``m`` images in all), else 1. Each image counts once: a
+    ``f / (f − n_params)`` for its ``f`` fitted images: a least-squares curve's residuals are
+    that much smaller than the images' scatter, on average over the images it was fitted to,
+    however few of them count), where r is below 1 by more than twice its sampling error
+    (``1/sqrt(2 m)`` for ``m`` images in all), else 1. Each image counts once: a
     ratio of RMS values would be ruled by the few planes where the curve is flat and the
     predicted error huge. The curve's lack of fit, stage jitter and flicker only add scatter, so
     r < 1 means the pixels are less noisy than the camera model says (a gain too low, frames
@@ -249,7 +292,8 @@ def measured_noise(residual_nm: np.ndarray, predicted_nm: np.ndarray, *, n_param
     m = int(count.sum())
     if m == 0:
         return 1.0
-    dof = count / np.maximum(count - n_params, 1)
+    fitted = count if n_fitted is None else np.asarray(n_fitted)
+    dof = fitted / np.maximum(fitted - n_params, 1)
     normalised2 = np.where(use, residual_nm / np.where(use, predicted_nm, 1.0), 0.0) ** 2
     ratio = float(np.sqrt(np.sum(dof * np.sum(normalised2, axis=1)) / m))
     return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0

@@ -24,7 +24,13 @@ from scipy.spatial import cKDTree
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.dimming import background_ratio
-from latentz.calibration.errors import combine, field_sigma, fit_sigma_s, measured_noise
+from latentz.calibration.errors import (
+    FieldLine,
+    combine,
+    field_line,
+    fit_sigma_s,
+    measured_noise,
+)
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
 from latentz.calibration.readout import SHAPE_PARAMS, JointZ, joint_z, shape_covariance
@@ -442,10 +448,14 @@ class Calibration:
                 s = np.where(use, model.values[k], 0.0).ravel()
                 part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
                 predicted = np.where(use, part.reshape(len(k), n_z), np.nan)
-                residual = model.inverse[k].residuals(model.values[k], self.local.z_nm[k])
+                z = self.local.z_nm[k]
+                residual = model.inverse[k].residuals(model.values[k], z)
+                span = model.z_range[k]  # the inverse's planes: finite, in its monotonic range
+                fitted = np.isfinite(model.values[k]) & (z >= span[:, :1]) & (z <= span[:, 1:])
                 self._cache["noise_scale"] = measured_noise(
-                    residual, predicted, n_params=model.inverse.order + 1
-                )
+                    residual, predicted, n_params=model.inverse.order + 1,
+                    n_fitted=fitted.sum(axis=1),
+                )  # fmt: skip
         return self._cache["noise_scale"]
 
     def _model_sigma(
@@ -467,18 +477,21 @@ class Calibration:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
         field_sigma`), less the local models' part of the held-out errors."""
         kind = self.field_model
-        return self._held_out_sigma(self.crossval_of(kind), kind, axis, z, distance,
-                                    f"crossval_model_sigma/{kind}/{axis}")  # fmt: skip
+        line = self._held_out_line(lambda: self.crossval_of(kind), kind, axis,
+                                   f"crossval_line/{kind}/{axis}")  # fmt: skip
+        return line.sigma(z, distance)
 
-    def _held_out_sigma(self, table: pd.DataFrame, kind: str, axis: str, z: np.ndarray,
-                        distance: np.ndarray, key: str) -> np.ndarray:  # fmt: skip
-        """:func:`~latentz.calibration.errors.field_sigma` of the held-out errors ``table``
-        with the local models' σ at its rows (cached under ``key``)."""
+    def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
+                       key: str) -> FieldLine:  # fmt: skip
+        """The :class:`~latentz.calibration.errors.FieldLine` of the held-out errors
+        ``table()`` with the local models' σ at its rows, made once and cached under ``key``."""
         if key not in self._cache:
+            held_out = table()
             scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
-            rows = table["particle"].to_numpy(int)
-            self._cache[key] = scale * self._model_sigma(axis, rows, table["z_nm"].to_numpy())
-        return field_sigma(table, kind, axis, z, distance, model_nm=self._cache[key])
+            rows = held_out["particle"].to_numpy(int)
+            model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
+            self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm)
+        return self._cache[key]
 
     def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None,
                     distance: np.ndarray) -> np.ndarray:  # fmt: skip
@@ -497,8 +510,8 @@ class Calibration:
             return np.zeros(np.shape(z))
         levels = np.unique(table["c"].to_numpy())
         by_level = np.array([
-            self._held_out_sigma(table[table["c"] == c], "pairs", "z", z, distance,
-                                 f"pair_model_sigma/{c}")
+            self._held_out_line(lambda c=c: table[table["c"] == c], "pairs", "z",
+                                f"pair_line/{c}").sigma(z, distance)
             for c in levels])  # fmt: skip
         if levels.size == 1 or c_spot is None:
             return by_level[0]

@@ -72,7 +72,7 @@ def localize_movies(
     from latentz.cli.chunked import run_chunked
     from latentz.cli.options import camera_from_options
     from latentz.localization import check_camera_offset, check_roi_fits
-    from latentz.localization.quality import check_calibration_fits
+    from latentz.localization.mismatch import check_calibration_fits
 
     if fmt is not None:
         check_choice("fmt", fmt, LOCALIZATION_FORMATS)
@@ -122,7 +122,7 @@ def localize_movies(
         resume=resume,
         metadata=meta,
         progress=progress,
-        finish=check_calibration_fits,
+        finish=functools.partial(check_calibration_fits, calibration=cal),
     )
     check_widths(table[["wx", "wy"]].to_numpy(dtype=np.float64), cal.width_range_px)
     if fmt == "thunderstorm":

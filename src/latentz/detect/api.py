@@ -489,6 +489,7 @@ def _maxima(
     weights = filter_plan(chunk.sigma).weights
     gain_rows = edge_noise_gain(height, weights).astype(np.float32)
     gain_cols = edge_noise_gain(width, weights).astype(np.float32)
+    taps = tuple(chunk.weights)  # np.float32 each
     counts = np.zeros(n * strips, np.int64)
     # room for a maximum per 32 x 32 px (a fuller task is rerun with room for its count)
     cap = max(256, height * width // (strips * _PIXELS_PER_MAXIMUM))
@@ -497,8 +498,8 @@ def _maxima(
         cols = np.empty((n * strips, cap), np.int64)
         values = np.empty((n * strips, cap), np.float32)
         _k.detect_strips(
-            *chunk.args, limits, gain_rows, gain_cols, min_distance, strips, rows, cols, values,
-            counts,
+            *chunk.args, taps, limits, gain_rows, gain_cols, min_distance, strips, rows, cols,
+            values, counts,
         )  # fmt: skip
         if counts.max(initial=0) <= cap:
             break
@@ -530,7 +531,19 @@ def merge_maxima(
     """(keep, close_pair) of maxima ordered by ``frame``: a maximum within 3 sigma of a higher one
     with no dip of 2 noise units between them is a ripple of the same spot (not kept); a kept one
     with another within ``half`` px is a close pair. ``valleys(first, second)`` gives the lowest
-    band-passed value on the line between maxima ``first[k]`` and ``second[k]``."""
+    band-passed value on the line between maxima ``first[k]`` and ``second[k]``.
+
+    The kernels take the maxima of each frame ordered by row (as `detect_strips` writes them;
+    others are put in that order here and the flags returned in the given order)."""
+    order = np.lexsort((rows, frame))
+    in_order = bool(np.all(order == np.arange(len(order))))
+    if not in_order:
+        frame, rows, cols, values = frame[order], rows[order], cols[order], values[order]
+        given = valleys
+
+        def valleys(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+            return given(order[first], order[second])
+
     starts = np.searchsorted(frame, np.arange(len(noise) + 1))
     radius = _MERGE_RADIUS_SIGMAS * sigma
     counts = np.empty(len(rows), np.int64)
@@ -544,7 +557,11 @@ def merge_maxima(
     close = np.empty(len(rows), np.bool_)
     _k.merge_and_pair(starts, rows, cols, values, noise, offsets, lows, _MERGE_DIP, half, keep,
                       close)  # fmt: skip
-    return keep, close
+    if in_order:
+        return keep, close
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return keep[back], close[back]
 
 
 def detect(

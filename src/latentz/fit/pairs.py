@@ -30,6 +30,7 @@ from scipy.special import gammaln
 
 from latentz._shared.validate import check_choice
 from latentz.fit._model import N_PARAMS, model_and_jacobian, photons_of
+from latentz.fit.api import CORRELATED, correlations_of
 
 __all__ = ["PairFit", "fit_pairs", "is_split", "LR_LIMIT", "MIN_SHARE", "MIN_SEPARATION_PX"]
 
@@ -58,6 +59,9 @@ class PairFit(NamedTuple):
     errors : ndarray (n, 2, 7)
         Their standard deviations in the two-emitter model (`fit_pairs`' ``errors``); NaN where
         its information is singular.
+    correlations : ndarray (n, 2, 6)
+        Each emitter's correlations of the pairs `latentz.fit.api.CORRELATED` (amplitude, wx,
+        wy, ρ) in the same covariance, as `latentz.fit.FitResult.correlations` holds them.
     loglik : ndarray (n,)
         Log-likelihood of the two-emitter fit, as `latentz.fit.FitResult.loglik`.
     chi2 : ndarray (n,)
@@ -73,6 +77,7 @@ class PairFit(NamedTuple):
 
     params: np.ndarray
     errors: np.ndarray
+    correlations: np.ndarray
     loglik: np.ndarray
     chi2: np.ndarray
     iterations: np.ndarray
@@ -222,8 +227,10 @@ def _natural(
     s2: float,
     sandwich: bool,
 ) -> tuple[np.ndarray, ...]:
-    """Natural parameters (n, 2, 7), their standard deviations (n, 2, 7) and whether the
-    information was invertible (n,), at internal parameters ``theta`` (n, 13) fitted to the
+    """Natural parameters (n, 2, 7), their standard deviations (n, 2, 7), each emitter's
+    correlations (n, 2, 6; of internal parameters, which each map to one natural parameter by an
+    increasing function, so to first order the same) and whether the information was invertible
+    (n,), at internal parameters ``theta`` (n, 13) fitted to the
     ``seen`` pixels of ``data`` (n, p): the Cramér–Rao bounds, or with ``sandwich`` the
     covariance of a misspecified fit, ``I⁻¹ (Σ J Jᵀ (d − mu)² / (mu + s²)²) I⁻¹`` times
     ``p / (p − 13)`` (p seen pixels) for the residuals' lost degrees of freedom (the bound on
@@ -244,14 +251,17 @@ def _natural(
         cov[usable] = cov[usable] @ meat[usable] @ cov[usable]
     sd = np.sqrt(np.maximum(np.diagonal(cov, 0, 1, 2), 0.0))
     params, errors = np.empty((len(theta), 2, N_PARAMS)), np.empty((len(theta), 2, N_PARAMS))
+    correlations = np.empty((len(theta), 2, len(CORRELATED)))
     for e, k in enumerate((0, 6)):
+        own = [k, k + 1, k + 2, 12, k + 3, k + 4, k + 5]  # in the order of PARAMS
+        correlations[:, e] = correlations_of(cov[:, own][:, :, own])
         wx, wy, rho = np.exp(theta[:, k + 3]), np.exp(theta[:, k + 4]), np.tanh(theta[:, k + 5])
         params[:, e] = np.stack([theta[:, k], theta[:, k + 1], theta[:, k + 2], theta[:, 12],
                                  wx, wy, rho], 1)  # fmt: skip
         errors[:, e] = np.stack([sd[:, k], sd[:, k + 1], sd[:, k + 2], sd[:, 12],
                                  wx * sd[:, k + 3], wy * sd[:, k + 4],
                                  (1 - rho**2) * sd[:, k + 5]], 1)  # fmt: skip
-    return params, errors, usable
+    return params, errors, correlations, usable
 
 
 def fit_pairs(
@@ -295,8 +305,8 @@ def fit_pairs(
         for k in range(0, len(rois), _BATCH)
     ]
     if not parts:
-        return PairFit(*(np.zeros((0, *shape)) for shape in ((2, N_PARAMS), (2, N_PARAMS), (), (),
-                                                               (), (), ())))  # fmt: skip
+        shapes = ((2, N_PARAMS), (2, N_PARAMS), (2, len(CORRELATED)), (), (), (), (), ())
+        return PairFit(*(np.zeros((0, *shape)) for shape in shapes))
     return PairFit(*(np.concatenate(field) for field in zip(*parts, strict=True)))
 
 
@@ -315,7 +325,7 @@ def _fit_batch(
     best = np.where(loglik[n:] > loglik[:n], np.arange(n) + n, np.arange(n))
     best = np.where(np.isfinite(loglik[best]), best, np.arange(n))
     theta, loglik, stopped = theta[best], loglik[best], stopped[best]
-    params, errors, usable = _natural(theta, data, seen, (h, w), s2, sandwich)
+    params, errors, correlations, usable = _natural(theta, data, seen, (h, w), s2, sandwich)
     lo, hi = _bounds((h, w), s2)
     shape = [3, 4, 5, 9, 10, 11]  # log widths and atanh rho of both emitters
     inside = np.all((theta[:, shape] > lo[shape] + 1e-6) & (theta[:, shape] < hi[shape] - 1e-6), 1)
@@ -325,7 +335,7 @@ def _fit_batch(
     constant = np.sum(seen * gammaln(np.maximum(data + s2, 0.0) + 1.0), axis=1)
     chi2 = np.sum(seen * (data - mu) ** 2 / np.maximum(mu + s2, 1e-12), 1)
     return PairFit(
-        params, errors, loglik - constant, chi2,
+        params, errors, correlations, loglik - constant, chi2,
         iterations[best], 2.0 * (loglik - single), stopped & usable & inside,
     )  # fmt: skip
 

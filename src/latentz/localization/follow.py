@@ -13,8 +13,9 @@ steady rate (a microgear); when that rigid motion does not describe the last ste
 
 A fit is lost when it did not converge, or when it lies more than half the ROI less one pixel
 from its prediction (the emitter may then lie partly outside the ROI that was fitted). A ROI
-whose fit lands on another pixel than the ROI's centre is cut again there and refitted, exactly
-as in full detection, so that both modes fit each emitter in the same ROI.
+whose fit lands on another pixel than the ROI's centre is cut again there and refitted by the
+function full detection uses (:mod:`latentz.localization.recentre`), so that both modes fit each
+emitter in the same ROI.
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ from latentz.detect import (
     detect_arrays,
     roi_windows,
 )
-from latentz.fit.api import FitResult, fit_arrays, replace_rows, result_table, with_sandwich
+from latentz.fit.api import FitResult, result_table
+from latentz.localization.recentre import fit_recentred
 
 __all__ = ["localize_tracked"]
 
@@ -101,55 +103,22 @@ def _fit_centred(
     source: _Source, t: int, xy: np.ndarray, size: int, method: str, readnoise: float,
     init: np.ndarray | None,
 ) -> tuple[FitResult, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """Fit ROIs centred at ``xy`` (k, 2) px of frame ``t``; refit once where the fit lands on
-    another pixel. Returns the fit (x, y in full-frame px), row0, col0 and edge flags."""
+    """Fit ROIs centred at ``xy`` (k, 2) px of frame ``t`` from ``init`` (k, 7, full-frame px;
+    default the moment start), refit once where the fit lands on another pixel
+    (`fit_recentred`). Returns the fit (x, y in full-frame px), row0, col0 and edge flags."""
     rows, cols = np.rint(xy[:, 1]).astype(np.int64), np.rint(xy[:, 0]).astype(np.int64)
-    row0, col0, windows, edge = roi_windows(rows, cols, size, source.shape)
+    row0, col0, windows, _ = roi_windows(rows, cols, size, source.shape)
     start = None
     if init is not None:
         start = init.copy()
         start[:, 0] = xy[:, 0] - col0
         start[:, 1] = xy[:, 1] - row0
-    rois = source.rois(t, row0, col0, size)
-    fit = fit_arrays(rois, method=method, readnoise=readnoise, init=start, windows=windows)
-    x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
-    ok = np.isfinite(x) & np.isfinite(y)
-    new_row0, new_col0, new_windows, new_edge = roi_windows(
-        np.where(ok, np.rint(y), rows).astype(np.int64),
-        np.where(ok, np.rint(x), cols).astype(np.int64),
-        size,
-        source.shape,
-    )
-    moved = (new_row0 != row0) | (new_col0 != col0)
-    if moved.any():
-        centred = source.rois(t, new_row0[moved], new_col0[moved], size)
-        again = fit_arrays(
-            centred,
-            method=method,
-            readnoise=readnoise,
-            init=_shifted(fit.params[moved], col0[moved] - new_col0[moved],
-                          row0[moved] - new_row0[moved]),
-            windows=new_windows[moved],
-        )  # fmt: skip
-        fit = replace_rows(fit, again, moved)
-        rois = rois.copy()
-        rois[moved] = centred
-        row0, col0, windows, edge = new_row0, new_col0, new_windows, new_edge
-    # the errors of the final fits only (the sandwich needs each one's own ROI)
-    fit = with_sandwich(
-        fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise, windows=windows
-    )
-    params = fit.params.copy()
-    params[:, 0] += col0
-    params[:, 1] += row0
-    return fit._replace(params=params), row0, col0, edge
-
-
-def _shifted(params: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    out = params.copy()
-    out[:, 0] += dx
-    out[:, 1] += dy
-    return out
+    done = fit_recentred(
+        lambda _, r0, c0: source.rois(t, r0, c0, size), source.rois(t, row0, col0, size),
+        (row0, col0), (rows, cols), frame_shape=source.shape, method=method,
+        readnoise=readnoise, windows=windows, init=start,
+    )  # fmt: skip
+    return done.fit, done.row0, done.col0, done.edge
 
 
 def _new(candidates: np.ndarray, known: np.ndarray, half: int) -> np.ndarray:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import dask
@@ -23,20 +24,15 @@ from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import cut_photons, detect_arrays, roi_windows
-from latentz.fit.api import (
-    FIT_COLUMNS,
-    METHODS,
-    fit_arrays,
-    replace_rows,
-    result_table,
-    with_sandwich,
-)
+from latentz.detect import cut_photons, detect_arrays
+from latentz.fit.api import FIT_COLUMNS, METHODS, result_table
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
+from latentz.localization.mismatch import check_calibration_fits
 from latentz.localization.pairs import PAIR_COLUMNS, split_pairs
-from latentz.localization.quality import assess, check_calibration_fits
+from latentz.localization.quality import assess
+from latentz.localization.recentre import fit_recentred
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -112,46 +108,29 @@ def _localize_chunk(
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
-    rois = found.rois
-    fit = fit_arrays(rois, method=method, readnoise=readnoise, device=device)
-    row0, col0 = found.row0, found.col0
-    # Centre each ROI on its fitted position, as calibration centres its fixed ROI on the
-    # particle: the fitted widths and centre of a wide, truncated spot depend on where the ROI
-    # sits, and the detection peak can be a pixel off for a defocused, asymmetric image. At the
-    # frame's edge the ROI is clipped to the frame: its pixels outside are left out of the fit.
-    x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
-    ok = np.isfinite(x) & np.isfinite(y)
-    rows = np.where(ok, np.rint(y), found.row).astype(np.int64)
-    cols = np.where(ok, np.rint(x), found.col).astype(np.int64)
-    new_row0, new_col0, windows, edge = roi_windows(rows, cols, roi_size, block.shape[-2:])
-    moved = (new_row0 != row0) | (new_col0 != col0)
-    if moved.any():
-        again = cut_photons(
-            block, found.frame[moved], new_row0[moved], new_col0[moved], roi_size, camera_terms
-        )
-        refit = fit_arrays(
-            again, method=method, readnoise=readnoise, device=device, windows=windows[moved]
-        )
-        fit = replace_rows(fit, refit, moved)
-        rois = rois.copy()
-        rois[moved] = again
-        row0, col0 = new_row0, new_col0
-    # the errors of the final fits only (the sandwich needs each one's own ROI)
-    fit = with_sandwich(
-        fit, np.asarray(rois, np.float64), method=method, readnoise=readnoise, windows=windows
-    )
-    params = fit.params.copy()
-    params[:, 0] += col0
-    params[:, 1] += row0
+
+    def read(moved: np.ndarray, row0: np.ndarray, col0: np.ndarray) -> np.ndarray:
+        return cut_photons(block, found.frame[moved], row0, col0, roi_size, camera_terms)
+
+    done = fit_recentred(
+        read, found.rois, (found.row0, found.col0), (found.row, found.col),
+        frame_shape=block.shape[-2:], method=method, readnoise=readnoise, device=device,
+    )  # fmt: skip
     table = result_table(
-        fit._replace(params=params), frame=first_frame + found.frame, snr=found.snr, edge=edge,
+        done.fit, frame=first_frame + found.frame, snr=found.snr, edge=done.edge,
         close_pair=found.close_pair,
     )  # fmt: skip
     if not pairs:
         return table.assign(pair=-1, merged=False)
     table.attrs["roi_size"] = roi_size
-    return split_pairs(table, np.asarray(rois, np.float64), np.column_stack([col0, row0]),
+    return split_pairs(table, done.rois, np.column_stack([done.col0, done.row0]),
                        readnoise=readnoise, calibration=calibration)  # fmt: skip
+
+
+def _chunk_with(options: tuple, block: np.ndarray, first_frame: int) -> pd.DataFrame:
+    """`_localize_chunk` of ``block`` with the movie's ``options`` (its arguments after
+    ``first_frame``)."""
+    return _localize_chunk(block, first_frame, *options)
 
 
 def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
@@ -224,16 +203,16 @@ def _localize_chunks(
 ) -> pd.DataFrame:
     """Detect and fit chunk by chunk, in waves of as many chunks as the scheduler has workers."""
     chosen, width, client = _scheduler_and_width(scheduler)
+    # the options bound to the task's function: dask would walk the calibration's fields and
+    # arrays as arguments, looking for collections, on every task
+    chunk_task = dask.delayed(partial(_chunk_with, options), pure=False)
     tables = []
     spans = list(_chunks(movie.shape[0], chunk_frames))
     try:
         with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
             for w0 in range(0, len(spans), width):
                 wave = spans[w0 : w0 + width]
-                tasks = [
-                    dask.delayed(_localize_chunk)(_source(frames, movie, a, b), a, *options)
-                    for a, b in wave
-                ]
+                tasks = [chunk_task(_source(frames, movie, a, b), a) for a, b in wave]
                 tables.extend(dask.compute(*tasks, scheduler=chosen))
                 bar.update(wave[-1][1] - wave[0][0])
     finally:
@@ -408,5 +387,5 @@ def localize(
         table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))
     table = assess(table, calibration)
     if calibration is not None:
-        table = check_calibration_fits(table)
+        table = check_calibration_fits(table, calibration)
     return table

@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from latentz.fit._model import PARAMS, photons_of
-from latentz.fit.api import ERROR_COLUMNS, FIT_COLUMNS
+from latentz.fit.api import CORRELATION_COLUMNS, ERROR_COLUMNS
 from latentz.fit.pairs import PairFit, fit_pairs, is_split
 from latentz.localization.quality import DUPLICATE_PX, assess
 
@@ -155,7 +155,7 @@ def _look_like_one(
 
 def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.DataFrame:
     """Two rows per row of ``rows`` (emitter 0 then 1), in full-frame pixels (ROI corners
-    ``corner``, (n, 2) as x, y), with the two-emitter fit's values and errors."""
+    ``corner``, (n, 2) as x, y), with the two-emitter fit's values, errors and correlations."""
     n = len(rows)
     members = rows.loc[rows.index.repeat(2)].reset_index(drop=True)
     params = fit.params.reshape(2 * n, len(PARAMS)).copy()
@@ -166,11 +166,12 @@ def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.Dat
     errors = fit.errors.reshape(2 * n, len(PARAMS))
     for k, name in enumerate(ERROR_COLUMNS):
         members[name] = errors[:, k]
+    correlations = fit.correlations.reshape(2 * n, len(CORRELATION_COLUMNS))
+    for k, name in enumerate(CORRELATION_COLUMNS):
+        members[name] = correlations[:, k]
     for name, values in (("loglik", fit.loglik), ("chi2", fit.chi2),
                          ("iterations", fit.iterations), ("converged", fit.converged)):  # fmt: skip
         members[name] = np.repeat(values, 2)
-    for name in FIT_COLUMNS[FIT_COLUMNS.index("converged") + 1 :]:
-        members[name] = np.nan  # not reported for the two-emitter model
     return members
 
 

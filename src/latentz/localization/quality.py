@@ -27,12 +27,9 @@ of 300–10,000 photons at 0.2–2 per µm² on random astigmatic microscopes, e
 own simulated beads): each flag alone removes at most about 2 % of the localizations that the
 challenge's matching calls correct.
 
-When a table's spots are inconsistent with the calibration as a whole (their median χ² is far
-above a right calibration's), :func:`check_calibration_fits` warns once, naming
-the likely cause, and flags every spot of the table. The cause comes from ``width_ratio``
-(observed over calibrated mean width: emitters of another size than the calibration particles,
-paper Supp. Fig. 9, or other optics) and ``axis_mismatch`` (ellipticity across the
-calibration's astigmatism axis).
+``width_ratio`` (observed over calibrated mean width) and ``axis_mismatch`` (ellipticity
+across the calibration's astigmatism axis) say how each spot differs from the curves; whether
+the calibration fits the table as a whole is measured by :mod:`latentz.localization.mismatch`.
 """
 
 from __future__ import annotations
@@ -43,14 +40,11 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz._shared.sanity import warn
-
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
 __all__ = [
     "assess",
-    "check_calibration_fits",
     "summary",
     "good_rows",
     "QUALITY_COLUMNS",
@@ -87,11 +81,6 @@ QUALITY_COLUMNS = (
     "axis_mismatch",
     "good",
 )
-#: Median consistency χ² of a table's spots above which the calibration is blamed: right
-#: calibrations give 0.2–4.5 (random astigmatic microscopes, 0.2–2 molecules per µm²,
-#: benchmarks/bench_verdicts.py); one whose astigmatism lies 45° off gives 16, the SMLM 2016
-#: beads' calibration on the fit3Dcspline bead (widths 0.89x) 6.8, rotated by 45° 38.
-MISMATCH_MEDIAN_CHI2 = 6.0
 
 
 def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
@@ -178,49 +167,6 @@ def assess(spots: pd.DataFrame, calibration: Calibration | None = None) -> pd.Da
         good &= inside & ~inconsistent
     out["good"] = good
     return out
-
-
-def check_calibration_fits(table: pd.DataFrame) -> pd.DataFrame:
-    """``table``, or, when the median ``consistency_chi2`` of its converged, unique spots that
-    the calibration located exceeds :data:`MISMATCH_MEDIAN_CHI2`, a copy with every spot
-    ``inconsistent`` and not good, after one warning naming the likely cause: a calibration
-    that contradicts most spots cannot be trusted for the few it happens to match (its curves
-    cross the data's at some z). The median over many spots allows for each spot's noise; the
-    per-spot limit :data:`CHI2_LIMIT` only catches gross misfits."""
-    if "inconsistent" not in table.columns:
-        return table
-    chi2 = table["consistency_chi2"].to_numpy(float)
-    checked = (
-        table["converged"].to_numpy(bool) & ~table["duplicate"].to_numpy(bool) & np.isfinite(chi2)
-    )
-    if not checked.any():
-        return table
-    median = float(np.median(chi2[checked]))
-    if median <= MISMATCH_MEDIAN_CHI2:
-        return table
-    ratio = float(np.nanmedian(table["width_ratio"].to_numpy(float)[checked]))
-    across = float(np.nanmedian(table["axis_mismatch"].to_numpy(float)[checked]))
-    if across > 0.1:
-        cause = (
-            "their astigmatism lies along other axes than the calibration's: another "
-            "microscope, or a rotated camera"
-        )
-    elif abs(np.log(ratio)) > np.log(1.1):
-        cause = (
-            f"their widths are {ratio:.2g}x the calibration's: emitters "
-            f"{'smaller' if ratio < 1 else 'larger'} than the calibration particles (a "
-            "particle's image is the PSF blurred by the particle, so it changes with z unlike a "
-            "point's), or another pixel size, wavelength or objective"
-        )
-    else:
-        cause = "their shapes differ from the calibration's: another microscope or camera"
-    warn(
-        f"The calibration does not fit these data: their median consistency chi2 is "
-        f"{median:.3g}, where a right calibration gives at most {MISMATCH_MEDIAN_CHI2:g} "
-        f"({cause}); every spot is flagged `inconsistent` and not good. Calibrate on this "
-        "microscope and camera, with emitters like those you measure."
-    )
-    return table.assign(inconsistent=True, good=False)
 
 
 def summary(table: pd.DataFrame) -> dict[str, int]:

@@ -9,6 +9,7 @@ a true molecule.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Callable, Sequence
 
@@ -19,6 +20,7 @@ from scipy.spatial import cKDTree
 from latentz.calibration import Calibration, calibrate
 from latentz.localization import localize
 from latentz.simulate import calibration_dataset
+from latentz.simulate.aberrations import AberrationMap
 from latentz.simulate.molecules import (
     Microscope,
     molecule_frames,
@@ -35,6 +37,7 @@ __all__ = [
     "nearest_rows",
     "precision_against_bounds",
     "true_positives",
+    "wrong_microscopes",
 ]
 
 #: One set: (localizations with ``correct``, truth, calibration).
@@ -56,6 +59,30 @@ def bead_calibration(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the CPU and the nearest-particle field model notes
         return calibrate(list(data.stacks), data.z_nm, camera=camera)
+
+
+def wrong_microscopes(microscope: Microscope) -> dict[str, Microscope]:
+    """``microscope`` (as "right") and its variants that differ in one thing, whose beads make
+    wrong calibrations: the astigmatism's axis turned by 90° or 45°, the pixel size 1.25x (the
+    magnification over 1.25), the wavelength 1.2x."""
+    optics, aberrations, camera = microscope
+    c = dict(zip(aberrations.modes, aberrations.coefficients_nm[:, 0], strict=True))
+    field = aberrations.field_shape
+    return {
+        "right": microscope,
+        "axis 90° off": microscope._replace(
+            aberrations=AberrationMap.constant({**c, 5: -c[5], 6: -c[6]}, field_shape=field)
+        ),
+        "axis 45° off": microscope._replace(
+            aberrations=AberrationMap.constant({**c, 5: -c[6], 6: c[5]}, field_shape=field)
+        ),
+        "pixel size 1.25x": microscope._replace(
+            optics=dataclasses.replace(optics, magnification=optics.magnification / 1.25)
+        ),
+        "wavelength 1.2x": microscope._replace(
+            optics=dataclasses.replace(optics, wavelength_nm=optics.wavelength_nm * 1.2)
+        ),
+    }
 
 
 def localized_molecules(
