@@ -21,8 +21,7 @@ import numpy as np
 import pandas as pd
 
 from latentz._shared.atomic import write_text_atomic
-from latentz.calibration import calibrate
-from latentz.validation.study import draw_microscope, family_data, localize_test
+from latentz.validation.study import calibrate_defaults, draw_microscope, family_data, localize_test
 from latentz.validation.truth import score, summary
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -38,11 +37,10 @@ def compare(seed: int, size: str) -> dict:
     draw = draw_microscope(seed, size)
     data = family_data(draw)
     row = {"seed": seed, "astig nm": round(draw.astigmatism_nm), "form": draw.form}
-    try:
-        cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
-    except ValueError as err:
-        return row | {"fails": str(err).splitlines()[0][:120]}
-    row |= {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
+    cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera)
+    row |= choices
+    if cal is None:
+        return row
     spots = localize_test(data, calibration=cal)
     scored = {r: score(data, cal.apply(spots, z_readout=r)) for r in READOUTS}
     both = np.logical_and.reduce([s["in_range"].to_numpy(bool) for s in scored.values()])

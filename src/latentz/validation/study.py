@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
@@ -10,7 +11,23 @@ from latentz.validation.family import FAMILY_SIZES, draw_microscope, family_data
 from latentz.validation.floor import oracle_floor
 from latentz.validation.truth import localize_test, score, summary
 
-__all__ = ["common_spots", "run_defaults"]
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
+    from latentz.camera import Camera
+
+__all__ = ["calibrate_defaults", "common_spots", "run_defaults"]
+
+
+def calibrate_defaults(stacks: Any, z_nm: Any, camera: Camera) -> tuple[Calibration | None, dict]:
+    """``calibrate`` with no shape, ROI or field model given: the calibration and what it chose
+    (``ROI``, ``shape``, ``field model``), or None and ``fails``, the first line of its error."""
+    from latentz.calibration import calibrate
+
+    try:
+        cal = calibrate(stacks, z_nm, camera=camera)
+    except ValueError as err:
+        return None, {"fails": str(err).splitlines()[0][:160]}
+    return cal, {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
 
 
 def run_defaults(seed: int, size: str = "full") -> dict:
@@ -19,8 +36,6 @@ def run_defaults(seed: int, size: str = "full") -> dict:
     found and in range, z RMSE and its oracle floor (nm, over the spots in range in both),
     their ratio, x and y RMSE and their floors (nm) and the 1σ coverage of each axis
     (:func:`~latentz.validation.truth.summary`); seconds taken."""
-    from latentz.calibration import calibrate
-
     start = time.perf_counter()
     draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
@@ -30,11 +45,10 @@ def run_defaults(seed: int, size: str = "full") -> dict:
            "step nm": draw.z_step_nm}  # fmt: skip
     data = family_data(draw)
     row["render s"] = round(time.perf_counter() - start)
-    try:
-        cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
-    except ValueError as err:
-        return row | {"fails": str(err).splitlines()[0][:160]}
-    row |= {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
+    cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera)
+    row |= choices
+    if cal is None:
+        return row
     spots = localize_test(data, calibration=cal)
     scored = score(data, cal.apply(spots))
     errors = summary(scored)
