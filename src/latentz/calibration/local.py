@@ -204,22 +204,45 @@ def _focus_window(z: np.ndarray, amp: np.ndarray, fraction: float, min_planes: i
     return (idx >= left[:, None]) & (idx <= right[:, None]) & np.isfinite(amp)
 
 
-def _monotonic_range(
-    forward: PolyModel, z: np.ndarray, z_f: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The run of planes around focus over which s(z) is monotonic, as a (n, n_z) mask and a
-    (n, 2) z range. The run is the one containing z_f; its ends are where the sign of the
-    model's derivative on the planes changes."""
-    n, n_z = z.shape
-    slope = np.sign(forward.derivative()(z))
+def _run_about(breaks: np.ndarray, z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
+    """(n, n_z) mask of the run of planes about each particle's focus z_f that no break
+    interrupts (the plane nearest z_f starts the run)."""
+    n_z = z.shape[1]
     idx = np.arange(n_z)
-    centre = np.argmin(np.abs(z - z_f[:, None]), axis=1)
+    centre = np.argmin(np.abs(z - np.nan_to_num(z_f)[:, None]), axis=1)[:, None]
+    left = np.max(np.where(breaks & (idx < centre), idx, -1), axis=1) + 1
+    right = np.min(np.where(breaks & (idx > centre), idx, n_z), axis=1) - 1
+    return (idx >= left[:, None]) & (idx <= right[:, None])
+
+
+def _measured_run(traces: Traces, z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
+    """(n, n_z) mask of the planes each particle's models may use: the run about its focus
+    with no two consecutive planes unmeasured (a failed fit's NaN). A polynomial over a wider
+    gap is unconstrained there, and a plane beyond it would let the models reach across."""
+    measured = np.logical_and.reduce(
+        [np.isfinite(traces[c]) for c in ("x", "y", "wx", "wy", "rho", "amplitude")]
+    )
+    gap = ~measured
+    pair = np.zeros_like(gap)
+    pair[:, :-1] = gap[:, :-1] & gap[:, 1:]
+    pair[:, 1:] |= pair[:, :-1].copy()
+    return _run_about(pair, z, z_f)
+
+
+def _monotonic_range(
+    forward: PolyModel, z: np.ndarray, z_f: np.ndarray, run: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The run of planes around focus over which s(z) is monotonic, within the measured
+    ``run``, as a (n, n_z) mask and a (n, 2) z range. The run is the one containing z_f; its
+    ends are where the sign of the model's derivative on the planes changes."""
+    n = z.shape[0]
+    slope = np.sign(forward.derivative()(z))
+    centre = np.argmin(np.abs(z - np.nan_to_num(z_f)[:, None]), axis=1)
     sign_c = slope[np.arange(n), centre][:, None]
-    breaks = slope != sign_c
-    left = np.max(np.where(breaks & (idx < centre[:, None]), idx, -1), axis=1) + 1
-    right = np.min(np.where(breaks & (idx > centre[:, None]), idx, n_z), axis=1) - 1
-    mask = (idx >= left[:, None]) & (idx <= right[:, None])
-    rows = np.arange(n)
+    mask = _run_about((slope != sign_c) | ~run, z, z_f)
+    rows, idx = np.arange(n), np.arange(z.shape[1])
+    left = np.min(np.where(mask, idx, z.shape[1] - 1), axis=1)
+    right = np.max(np.where(mask, idx, 0), axis=1)
     return mask, np.stack([z[rows, left], z[rows, right]], axis=1)
 
 
@@ -229,10 +252,11 @@ def _shape_model(
     z_f: np.ndarray,
     amplitude_ref: np.ndarray,
     options: LocalOptions,
+    run: np.ndarray,
 ) -> ShapeModel:
     order = options.shape_order
-    forward = PolyModel.from_estimate(z, values, order=order)
-    mask, z_range = _monotonic_range(forward, z, z_f)
+    forward = PolyModel.from_estimate(z, values, order=order, mask=run)
+    mask, z_range = _monotonic_range(forward, z, z_f, run)
     long_enough = (z_range[:, 1] - z_range[:, 0]) >= options.min_range_nm
     ends = forward(z_range)
     s_domain = np.sort(ends, axis=1)
@@ -295,11 +319,12 @@ def fit_local(
     step = np.min(np.diff(traces.z_nm))
     in_focus = interior & (z_f > traces.z_nm[0] + step) & (z_f < traces.z_nm[-1] - step)
 
+    run = _measured_run(traces, z, z_f)
     lateral = {}
     for axis in ("x", "y"):
-        model = PolyModel.from_estimate(z, traces[axis], order=options.lateral_order)
+        model = PolyModel.from_estimate(z, traces[axis], order=options.lateral_order, mask=run)
         delta = model.shifted(model(z_f[:, None])[:, 0])
-        residuals = delta.residuals(z, traces[axis] - model(z_f[:, None]))
+        residuals = np.where(run, delta.residuals(z, traces[axis] - model(z_f[:, None])), np.nan)
         sigma = sliding_rms(
             z, residuals, window_nm=options.sigma_window_nm, n_params=options.lateral_order + 1
         )
@@ -312,7 +337,7 @@ def fit_local(
         if uses_amplitude(shape):
             ref = reference_amplitude(shape, wx, wy, rho, amp, theta=theta)
         values = shape_value(shape, wx, wy, rho, amp, theta=theta, amplitude_ref=ref[:, None])
-        models[shape] = _shape_model(values, z, z_f, ref, options)
+        models[shape] = _shape_model(values, z, z_f, ref, options, run)
     return LocalModels(
         z_nm=z,
         z_f=z_f,
