@@ -105,17 +105,16 @@ def test_a_calibration_of_another_microscope_is_caught(wrong, cause):
 
 
 def test_at_an_11_px_roi_out_of_range_loses_at_most_2_percent_of_the_correct_localizations():
-    """The microscope of seed 2 gets an 11 px ROI from the default rule: defocused images fill
-    it and the shape flattens towards the ends of the calibrated range, where a held-out
-    particle's dimmed image, read through its partner's flat inverse, errs by up to 10⁷ nm. Those
-    planes do not count towards the dimming transfer's σ (as they do not in the pair table),
-    so no spot's z error is wider than the span the calibration imaged."""
+    """The microscope of seed 2 calibrated at an 11 px ROI: defocused images fill it and the
+    shape flattens towards the ends of the calibrated range, where a held-out particle's dimmed
+    image, read through its partner's flat inverse, errs by up to 10⁷ nm. Those planes do not
+    count towards the dimming transfer's σ (as they do not in the pair table), so no spot's z
+    error is wider than the span the calibration imaged."""
     from latentz.calibration.dim_crossval import transfer_sigma
 
     rng = np.random.default_rng(2)
     microscope = random_microscope(rng)
-    cal = bead_calibration(microscope, 2)
-    assert cal.roi_size == 11  # the case this test is about
+    cal = bead_calibration(microscope, 2, roi_size=11)
     span = float(np.nanmax(cal.z_span_nm[:, 1] - cal.z_span_nm[:, 0]))
     assert np.all(transfer_sigma(cal)[2] <= span)
     sets = [localized_molecules(microscope, cal, rng, density_per_um2=d, n_frames=6)

@@ -45,10 +45,14 @@ Scored = tuple[pd.DataFrame, pd.DataFrame, Calibration]
 
 
 def bead_calibration(
-    microscope: Microscope, seed: int, *, field_shape: tuple[int, int] = (128, 128)
+    microscope: Microscope,
+    seed: int,
+    *,
+    field_shape: tuple[int, int] = (128, 128),
+    roi_size: int | None = None,
 ) -> Calibration:
-    """``calibrate`` with defaults on six 100 nm beads (20,000 photons, background 20) of
-    ``microscope``, imaged from −1 to +1 µm in 25 nm steps."""
+    """``calibrate`` with defaults (or the given ``roi_size``, px) on six 100 nm beads (20,000
+    photons, background 20) of ``microscope``, imaged from −1 to +1 µm in 25 nm steps."""
     optics, aberrations, camera = microscope
     data = calibration_dataset(
         n_particles=6, z_nm=np.arange(-1000.0, 1000.1, 25.0), n_stage_positions=1,
@@ -58,7 +62,7 @@ def bead_calibration(
     )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the CPU and the nearest-particle field model notes
-        return calibrate(list(data.stacks), data.z_nm, camera=camera)
+        return calibrate(list(data.stacks), data.z_nm, camera=camera, roi_size=roi_size)
 
 
 def wrong_microscopes(microscope: Microscope) -> dict[str, Microscope]:
