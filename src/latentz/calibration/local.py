@@ -195,23 +195,32 @@ def _focus_window(z: np.ndarray, amp: np.ndarray, fraction: float, min_planes: i
     filled = np.where(np.isfinite(amp), amp, -np.inf)
     top = np.argmax(filled, axis=1)
     below = filled < fraction * filled[np.arange(n), top][:, None]
-    idx = np.arange(n_z)
-    left = np.max(np.where(below & (idx < top[:, None]), idx, -1), axis=1) + 1
-    right = np.min(np.where(below & (idx > top[:, None]), idx, n_z), axis=1) - 1
+    left, right = _run_bounds(below, top)
     half = (min_planes + 1) // 2
     left = np.minimum(left, np.maximum(top - half, 0))
     right = np.maximum(right, np.minimum(top + half, n_z - 1))
-    return (idx >= left[:, None]) & (idx <= right[:, None]) & np.isfinite(amp)
+    return _between(left, right, n_z) & np.isfinite(amp)
 
 
-def _run_about(breaks: np.ndarray, z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
-    """(n, n_z) mask of the run of planes about each particle's focus z_f that no break
-    interrupts (the plane nearest z_f starts the run)."""
-    n_z = z.shape[1]
+def _run_bounds(breaks: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last plane (n,) of the run about each row's plane ``centre`` that no break of
+    ``breaks`` (n, n_z) interrupts; the centre plane always belongs to it."""
+    n_z = breaks.shape[1]
     idx = np.arange(n_z)
-    centre = np.argmin(np.abs(z - np.nan_to_num(z_f)[:, None]), axis=1)[:, None]
-    left = np.max(np.where(breaks & (idx < centre), idx, -1), axis=1) + 1
-    right = np.min(np.where(breaks & (idx > centre), idx, n_z), axis=1) - 1
+    left = np.max(np.where(breaks & (idx < centre[:, None]), idx, -1), axis=1) + 1
+    right = np.min(np.where(breaks & (idx > centre[:, None]), idx, n_z), axis=1) - 1
+    return left, right
+
+
+def _plane_of(z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
+    """Index (n,) of each particle's plane nearest its focus z_f (the first plane where z_f is
+    NaN)."""
+    return np.argmin(np.abs(z - np.nan_to_num(z_f)[:, None]), axis=1)
+
+
+def _between(left: np.ndarray, right: np.ndarray, n_z: int) -> np.ndarray:
+    """(n, n_z) mask of the planes from ``left`` to ``right`` inclusive."""
+    idx = np.arange(n_z)
     return (idx >= left[:, None]) & (idx <= right[:, None])
 
 
@@ -226,7 +235,7 @@ def _measured_run(traces: Traces, z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
     pair = np.zeros_like(gap)
     pair[:, :-1] = gap[:, :-1] & gap[:, 1:]
     pair[:, 1:] |= pair[:, :-1].copy()
-    return _run_about(pair, z, z_f)
+    return _between(*_run_bounds(pair, _plane_of(z, z_f)), z.shape[1])
 
 
 def _monotonic_range(
@@ -235,15 +244,11 @@ def _monotonic_range(
     """The run of planes around focus over which s(z) is monotonic, within the measured
     ``run``, as a (n, n_z) mask and a (n, 2) z range. The run is the one containing z_f; its
     ends are where the sign of the model's derivative on the planes changes."""
-    n = z.shape[0]
+    rows = np.arange(z.shape[0])
     slope = np.sign(forward.derivative()(z))
-    centre = np.argmin(np.abs(z - np.nan_to_num(z_f)[:, None]), axis=1)
-    sign_c = slope[np.arange(n), centre][:, None]
-    mask = _run_about((slope != sign_c) | ~run, z, z_f)
-    rows, idx = np.arange(n), np.arange(z.shape[1])
-    left = np.min(np.where(mask, idx, z.shape[1] - 1), axis=1)
-    right = np.max(np.where(mask, idx, 0), axis=1)
-    return mask, np.stack([z[rows, left], z[rows, right]], axis=1)
+    centre = _plane_of(z, z_f)
+    left, right = _run_bounds((slope != slope[rows, centre][:, None]) | ~run, centre)
+    return _between(left, right, z.shape[1]), np.stack([z[rows, left], z[rows, right]], axis=1)
 
 
 def _shape_model(
