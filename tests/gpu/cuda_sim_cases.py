@@ -3,8 +3,9 @@
 Run as ``NUMBA_ENABLE_CUDASIM=1 python cuda_sim_cases.py OUT_DIR`` (test_cuda_simulator.py does):
 the simulator must be switched on before ``numba.cuda`` is first imported, so it runs in a process
 of its own and leaves the rest of the test session on the real CPU path. It writes
-``fits.npz`` (per method, both devices and the truth), ``spots_{cpu,cuda}.parquet`` and
-``given_noise_{cpu,cuda}.npz`` (detections with a given noise level).
+``fits.npz`` (per method, both devices and the truth), ``spots_{cpu,cuda}.parquet``,
+``camera_spots_{cpu,cuda}.parquet`` (the same movie as a camera stores it, one chunk per frame)
+and ``given_noise_{cpu,cuda}.npz`` (detections with a given noise level).
 The simulator runs every GPU thread as Python, so the inputs are small.
 """
 
@@ -18,6 +19,7 @@ import pandas as pd
 assert os.environ.get("NUMBA_ENABLE_CUDASIM") == "1", "run with NUMBA_ENABLE_CUDASIM=1"
 
 import latentz.fit._cuda as fit_cuda  # noqa: E402
+from latentz.camera import Camera  # noqa: E402
 from latentz.detect._cuda import detect_arrays_cuda  # noqa: E402
 from latentz.detect.api import band_noise, detect_arrays  # noqa: E402
 from latentz.fit import amplitude_of, fit_arrays, render_rois  # noqa: E402
@@ -104,6 +106,13 @@ def movie(rng: np.random.Generator) -> np.ndarray:
     return rng.poisson(frames).astype(np.float64)
 
 
+def as_stored(frames: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, Camera]:
+    """The movie as a camera stores it: uint16 ADU with an offset, a gain and a flatfield."""
+    camera = Camera(offset=100.0, gain=0.5, flatfield=rng.uniform(0.8, 1.2, frames.shape[1:]))
+    adu = frames * camera.flatfield / camera.gain + camera.offset
+    return np.rint(adu).astype(np.uint16), camera
+
+
 def main(out_dir: Path) -> None:
     rng = np.random.default_rng(15)
     fit_cuda._BATCH_BYTES = 8 * 49 * 32  # batches of 32 ROIs: both streams and slots are used
@@ -112,6 +121,12 @@ def main(out_dir: Path) -> None:
     for device in ("cpu", "cuda"):
         spots = localize(frames, roi_size=7, device=device, scheduler="synchronous")
         spots.to_parquet(out_dir / f"spots_{device}.parquet")
+    adu, camera = as_stored(frames, rng)
+    for device in ("cpu", "cuda"):  # synchronous: the simulator swaps `cuda` in the module
+        spots = localize(  # that a kernel runs in, which other threads would then see
+            adu, camera=camera, roi_size=7, device=device, chunk_frames=1, scheduler="synchronous"
+        )
+        spots.to_parquet(out_dir / f"camera_spots_{device}.parquet")
     noise = 1.5 * band_noise(frames)  # a given noise, as tracking mode passes for edge bands
     for device, detector in (("cpu", detect_arrays), ("cuda", detect_arrays_cuda)):
         found = detector(frames, roi_size=7, noise=noise)

@@ -49,7 +49,11 @@ def sim_out(tmp_path_factory):
 @pytest.fixture(scope="module")
 def results(sim_out):
     fits = dict(np.load(sim_out / "fits.npz"))
-    spots = {d: pd.read_parquet(sim_out / f"spots_{d}.parquet") for d in ("cpu", "cuda")}
+    spots = {
+        (movie, d): pd.read_parquet(sim_out / f"{movie}spots_{d}.parquet")
+        for movie in ("", "camera_")
+        for d in ("cpu", "cuda")
+    }
     return fits, spots
 
 
@@ -90,9 +94,10 @@ def test_cuda_errors_cover_the_truth(results):
     assert abs(covered - 0.683) <= 3 * np.sqrt(0.683 * 0.317 / n)
 
 
-def test_cuda_localize_finds_the_same_spots(results):
+@pytest.mark.parametrize("movie", ["", "camera_"], ids=["photons", "uint16 ADU, two chunks"])
+def test_cuda_localize_finds_the_same_spots(results, movie):
     _, spots = results
-    cpu, gpu = spots["cpu"], spots["cuda"]
+    cpu, gpu = spots[movie, "cpu"], spots[movie, "cuda"]
     assert len(cpu) == len(gpu) >= 6  # every simulated emitter (one at the edge)
     assert cpu["edge"].any()
     for column in ("frame", "edge", "close_pair"):

@@ -1,8 +1,9 @@
 """Pinned host buffers and their device twins, kept per thread between calls to the GPU engine.
 
 Pinning host memory costs far more than copying into it, so each thread keeps one pinned buffer
-and one device buffer per role (for example "frames" or "fit0 rois") and reuses them while the
-shape and dtype stay the same. Memory stays bounded: one pair per role and thread.
+and one device buffer per role (for example "frames" or "fit0 rois"), or a device buffer alone
+for work that never leaves the GPU, and reuses them while the shape and dtype stay the same.
+Memory stays bounded: one pair per role and thread.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-__all__ = ["buffer_pair", "batch_size"]
+__all__ = ["buffer_pair", "batch_size", "device_buffer"]
 
 _local = threading.local()
 
@@ -25,6 +26,15 @@ def buffer_pair(role: str, shape: int | tuple[int, ...], dtype: Any) -> tuple[np
     if role not in cache or cache[role][0] != key:
         host = cuda.pinned_array(shape, dtype)
         cache[role] = (key, (host, cuda.device_array_like(host)))
+    return cache[role][1]
+
+
+def device_buffer(role: str, shape: int | tuple[int, ...], dtype: Any) -> Any:
+    """A device array of ``shape`` and ``dtype`` for ``role`` in this thread (no host twin)."""
+    cache = _local.__dict__.setdefault("device", {})
+    key = (tuple(np.atleast_1d(shape)), np.dtype(dtype))
+    if role not in cache or cache[role][0] != key:
+        cache[role] = (key, cuda.device_array(shape, dtype))
     return cache[role][1]
 
 

@@ -3,6 +3,9 @@
 The algorithm is the one of :mod:`latentz.detect`, step for step, so that both devices find the
 same emitters:
 
+0. the frames go to the GPU as stored (uint16 from a camera: a quarter of float64's bytes) and
+   become photoelectrons there, ``(adu - offset) x gain / flatfield``, as the CPU kernels convert
+   each pixel where they read it;
 1. band-pass ``G(sigma) - B(B(B(frame)))``: a Gaussian of ``sigma`` (scipy's sampled kernel,
    radius ``int(4 sigma + 0.5)``) minus three box filters standing in for ``G(5 sigma)``, each a
    separable 1D correlation with the frame's edge pixels repeated (scipy's mode "nearest");
@@ -10,7 +13,9 @@ same emitters:
    direction above 256 x 256 pixels), taken on the host from a subsample the GPU makes;
 3. a local maximum is the largest value within ``min_distance`` pixels and above
    ``threshold x noise``; the GPU lists them, the host orders them as ``np.nonzero`` does;
-4. ROI corners and close pairs on the host (a few numbers per spot), the ROIs cut on the GPU.
+4. the maxima of one spot merged and close pairs flagged on the host (a few numbers per spot),
+   the band's minimum between two maxima read on the GPU; ROI corners on the host, the ROIs cut
+   on the GPU.
 
 Frames go through the GPU in batches of bounded size from a pinned host buffer, kept between calls.
 """
@@ -19,12 +24,12 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numba import cuda
+from numba import cuda, float32
 
-from latentz._shared.cuda_buffers import batch_size, buffer_pair
+from latentz._shared.cuda_buffers import batch_size, buffer_pair, device_buffer
 from latentz._shared.validate import check_int, check_positive
 from latentz.detect import _kernels as _detect_kernels
 from latentz.detect.api import (
@@ -40,12 +45,47 @@ from latentz.detect.api import (
     roi_corners,
 )
 
+if TYPE_CHECKING:
+    from latentz.camera import Camera
+
 __all__ = ["detect_arrays_cuda"]
 
 
 _THREADS_2D = (8, 32)
 #: Bytes of float64 frames per batch; the device holds about four such buffers.
 _BATCH_BYTES = 128 * 2**20
+
+
+@cuda.jit
+def _to_photons(raw, offset, gain, flat, out):
+    """``out = (raw - offset) * gain / flat`` of a (t, H, W) stack; ``flat`` (H, W), or (1, 1)
+    holding 1 for a uniform camera."""
+    t, i, j = cuda.grid(3)
+    if t >= out.shape[0] or i >= out.shape[1] or j >= out.shape[2]:
+        return
+    value = (raw[t, i, j] - offset) * gain
+    if flat.shape[0] > 1:
+        value /= flat[i, j]
+    out[t, i, j] = value
+
+
+_line_pixel = cuda.jit(device=True)(_detect_kernels.line_pixel.py_func)
+
+
+@cuda.jit
+def _valleys(band, frame, rows, cols, first, second, out):
+    """``out[k]``: the least band-passed value (as float32, like the CPU's stored band) on the
+    line of pixels between maxima ``first[k]`` and ``second[k]``: `valleys_in_band`."""
+    k = cuda.grid(1)
+    if k >= out.shape[0]:
+        return
+    p, q = first[k], second[k]
+    steps = max(abs(rows[q] - rows[p]), abs(cols[q] - cols[p]))
+    low = np.inf
+    for m in range(steps + 1):
+        i, j = _line_pixel(rows[p], cols[p], rows[q], cols[q], m)
+        low = min(low, float32(band[frame[p], i, j]))
+    out[k] = low
 
 
 @cuda.jit
@@ -203,6 +243,34 @@ def _find_peaks(d_filtered: Any, limit: np.ndarray, sigma: float, reach: int) ->
         capacity = found
 
 
+def _camera_terms(camera: Camera | None, shape: tuple[int, int]) -> tuple[float, float, Any]:
+    """(offset ADU, gain e-/ADU, device flatfield or a (1, 1) one) for `_to_photons`."""
+    if camera is None:
+        return 0.0, 1.0, cuda.to_device(np.ones((1, 1)))
+    flat = camera.flatfield_region(shape)
+    flat = np.ones((1, 1)) if flat is None else np.asarray(flat, np.float64)
+    return float(camera.offset), float(camera.gain), cuda.to_device(flat)
+
+
+def _device_valleys(d_band: Any, t: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> Any:
+    """`merge_maxima`'s ``valleys`` for maxima ``(t, rows, cols)`` of the device band."""
+    d_t, d_rows, d_cols = (cuda.to_device(np.ascontiguousarray(a)) for a in (t, rows, cols))
+
+    def valleys(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        out = np.empty(len(first))
+        if len(first):
+            d_out = cuda.device_array(len(first))
+            blocks = math.ceil(len(first) / 128)
+            _valleys[blocks, 128](
+                d_band, d_t, d_rows, d_cols, cuda.to_device(np.asarray(first, np.int64)),
+                cuda.to_device(np.asarray(second, np.int64)), d_out,
+            )  # fmt: skip
+            out = d_out.copy_to_host()
+        return out
+
+    return valleys
+
+
 def detect_arrays_cuda(
     frames: Any,
     *,
@@ -211,8 +279,10 @@ def detect_arrays_cuda(
     sigma: float = 1.5,
     min_distance: int = 2,
     noise: Any = None,
+    camera: Camera | None = None,
 ) -> Detections:
-    """:func:`latentz.detect.detect_arrays` on the GPU: same arguments, same `Detections`."""
+    """:func:`latentz.detect.detect_arrays` on the GPU: same arguments, same `Detections`; frames
+    as stored (ADU when ``camera`` is given), the ROIs in photoelectrons."""
     stack, roi_size = check_frames(frames, roi_size)
     n_frames, height, width = stack.shape
     if threshold is None:
@@ -221,29 +291,25 @@ def detect_arrays_cuda(
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
     noise_known = check_noise(noise, n_frames)
+    offset, gain, d_flat = _camera_terms(camera, (height, width))
     batch = batch_size(n_frames, _BATCH_BYTES // (8 * height * width))
     shape = (batch, height, width)
-    pinned, d_frames = buffer_pair("frames", shape, np.float64)
-    work = tuple(buffer_pair(f"band-pass {k}", shape, np.float64)[1] for k in range(3))
+    pinned, d_raw = buffer_pair("frames", shape, stack.dtype)
+    photons, *work = (device_buffer(f"band-pass {k}", shape, np.float64) for k in range(4))
     parts = []
     for first in range(0, n_frames, batch):
         m = min(batch, n_frames - first)
         pinned[:m] = stack[first : first + m]
-        d_batch = d_frames[:m]
-        d_batch.copy_to_device(pinned[:m])
+        d_raw[:m].copy_to_device(pinned[:m])
+        d_batch = photons[:m]
+        grid, block = _grid(d_batch.shape)
+        _to_photons[grid, block](d_raw[:m], offset, gain, d_flat, d_batch)
         filtered = _band_pass(d_batch, sigma, tuple(w[:m] for w in work))
         noise = _noise(filtered) if noise_known is None else noise_known[first : first + m]
         peaks = _find_peaks(filtered, threshold * noise, sigma, reach)
         t, rows, cols = np.ascontiguousarray(peaks[:, :3].T, dtype=np.int64)
-        # the maxima of one spot merged and close pairs flagged on the host, as on the CPU
-        band = filtered.copy_to_host().astype(np.float32)
-
-        def valleys(first, second, band=band, t=t, rows=rows, cols=cols):
-            out = np.empty(len(first))
-            _detect_kernels.valleys_in_band(band, t, rows, cols, first, second, out)
-            return out
-
         values = peaks[:, 3].copy()
+        valleys = _device_valleys(filtered, t, rows, cols)
         keep, close = merge_maxima(t, rows, cols, values, noise, sigma, roi_size // 2, valleys)
         t, rows, cols, close, values = t[keep], rows[keep], cols[keep], close[keep], peaks[keep, 3]
         snr = values / noise[t]

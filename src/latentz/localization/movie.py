@@ -93,24 +93,20 @@ def _localize_chunk(
     """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"); ``x, y`` in
     full-frame pixels. With ``pairs``, close pairs are fitted as two emitters
     (:mod:`latentz.localization.pairs`, what one emitter looks like from ``calibration``)."""
-    block = np.asarray(block)
+    block = np.asarray(block)  # as stored: both devices convert to photoelectrons themselves
     if device == "cuda":
-        from latentz.detect._cuda import detect_arrays_cuda
-
-        block = _photons(block, camera)
-        found = detect_arrays_cuda(block, roi_size=roi_size, threshold=threshold, sigma=sigma)
-        camera_terms = None
-    else:  # the kernels read the frames as stored and convert each pixel where they read it
-        found = detect_arrays(
-            block, roi_size=roi_size, threshold=threshold, sigma=sigma, camera=camera
-        )
-        camera_terms = camera
+        from latentz.detect._cuda import detect_arrays_cuda as detect_on_device
+    else:
+        detect_on_device = detect_arrays
+    found = detect_on_device(
+        block, roi_size=roi_size, threshold=threshold, sigma=sigma, camera=camera
+    )
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
 
     def read(moved: np.ndarray, row0: np.ndarray, col0: np.ndarray) -> np.ndarray:
-        return cut_photons(block, found.frame[moved], row0, col0, roi_size, camera_terms)
+        return cut_photons(block, found.frame[moved], row0, col0, roi_size, camera)
 
     done = fit_recentred(
         read, found.rois, (found.row0, found.col0), (found.row, found.col),
@@ -141,24 +137,19 @@ def _source(frames: Any, movie: Any, start: int, stop: int) -> Any:
     return movie[start:stop]
 
 
-def _photons(block: np.ndarray, camera: Camera | None) -> np.ndarray:
-    """Photoelectrons of a chunk for the GPU, float32 unless the input is float64."""
-    if camera is None:
-        return block if block.dtype.kind == "f" else block.astype(np.float32)
-    photons = (block.astype(np.float32) - np.float32(camera.offset)) * np.float32(camera.gain)
-    flat = camera.flatfield_region(block.shape[-2:])
-    return photons if flat is None else photons / flat.astype(np.float32)
-
-
 def _dtype(column: str) -> str:
     if column in ("converged", "edge", "close_pair", "merged", "duplicate", "unresolved", "good"):
         return "bool"
     return "int64" if column in ("frame", "iterations", "pair") else "float64"
 
 
-def _scheduler_and_width(scheduler: Any) -> tuple[Any, int, Any]:
+def _scheduler_and_width(scheduler: Any, device: str) -> tuple[Any, int, Any]:
     """(scheduler for dask.compute, chunks per wave, client to close when done)."""
     cores = os.cpu_count() or 1
+    if scheduler is None and device == "cuda":
+        # two chunks in threads: one's host work (merging maxima, pair fits) overlaps the
+        # other's detection on the GPU; each thread keeps its own device buffers
+        return "threads", 2, None
     if scheduler is None:  # the kernels use every core: one chunk at a time is faster here
         return "synchronous", 1, None
     if isinstance(scheduler, str) and scheduler in _LOCAL_SCHEDULERS:
@@ -200,9 +191,11 @@ def _localize_chunks(
     options: tuple,
     scheduler: Any,
     progress: bool,
+    device: str,
 ) -> pd.DataFrame:
-    """Detect and fit chunk by chunk, in waves of as many chunks as the scheduler has workers."""
-    chosen, width, client = _scheduler_and_width(scheduler)
+    """Detect and fit chunk by chunk on ``device``, in waves of as many chunks as the scheduler
+    has workers."""
+    chosen, width, client = _scheduler_and_width(scheduler, device)
     # the options bound to the task's function: dask would walk the calibration's fields and
     # arrays as arguments, looking for collections, on every task
     chunk_task = dask.delayed(partial(_chunk_with, options), pure=False)
@@ -379,8 +372,9 @@ def localize(
         )  # fmt: skip
     else:
         table = _localize_chunks(
-            frames, movie, chunk_frames, (*options, calibration, bool(pairs)), scheduler, progress
-        )
+            frames, movie, chunk_frames, (*options, calibration, bool(pairs)), scheduler,
+            progress, device,
+        )  # fmt: skip
         table["pair"] = _number_pairs(table)
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
