@@ -175,8 +175,8 @@ def _cause(mismatch: Mismatch) -> str:
     if mismatch.widths_off and mismatch.blur_nm > BLUR_LIMIT_NM:
         causes.append(
             f"their widths fall short of the calibration's by a blur of {mismatch.blur_nm:.0f} "
-            f"nm (σ; a 100 nm bead blurs by 22 nm): calibration particles far larger than the "
-            "emitters, or another wavelength or objective"
+            f"nm (σ; a 100 nm bead blurs by 22 nm): emitters smaller than the calibration "
+            "particles, or another wavelength or objective"
         )
     elif mismatch.widths_off:
         causes.append(
