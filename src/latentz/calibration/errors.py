@@ -29,7 +29,7 @@ Three independent parts, added in quadrature:
 Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
 scatter about their z(s) curve less than their fit errors say, the camera's noise model
 overstates the noise (a gain too low, or frames averaged before saving) and the fit's part is
-scaled down to the measured scatter.
+scaled down to the measured scatter about each z (:func:`noise_by_z`).
 
 Part 3 is what the paper's error estimate lacks: its fit residuals at the particles shrink as terms
 are added, while the error between particles grows.
