@@ -74,3 +74,20 @@ def test_derivative_of_a_row_without_width_is_nan_without_a_warning():
         slope = rows.derivative()(np.array([[0.0], [7.0]]))
     assert slope[0, 0] == pytest.approx(2e-4)
     assert np.isnan(slope[1, 0])
+
+
+def test_leverage_is_how_much_each_residual_shrinks():
+    """Residuals of a least-squares curve scatter by sqrt(1 − h) times the noise: measured over
+    4,000 noise draws on uneven abscissae (dense at one end), against h."""
+    rng = np.random.default_rng(3)
+    x = np.sort(rng.uniform(0.0, 1.0, 40) ** 2) * 600.0 - 300.0
+    mask = np.ones((1, x.size), dtype=bool)
+    mask[0, :3] = False  # points left out of the fit have no leverage
+    noise = rng.normal(0.0, 1.0, (4000, x.size))
+    model = PolyModel.from_estimate(x, noise, order=6, mask=mask)
+    h = model[0].leverage(x[None], mask)[0]  # every row has the same points
+    assert np.all(np.isnan(h[:3]))
+    assert np.nansum(h) == pytest.approx(7.0)  # the trace of the hat matrix: its parameters
+    spread = model.residuals(np.broadcast_to(x, noise.shape), noise)[:, 3:].std(axis=0)
+    # each spread from 4,000 draws is known to 1/sqrt(8000) = 1.1 %
+    np.testing.assert_allclose(spread, np.sqrt(1.0 - h[3:]), rtol=0.045)

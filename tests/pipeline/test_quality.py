@@ -96,7 +96,7 @@ def test_another_microscopes_calibration_ends_with_one_warning(smlm_calibration,
         locs = lz.localize(stack, calibration=smlm_calibration, camera=lz.Camera(**FIT3D_CAMERA))
     messages = [str(w.message) for w in caught if issubclass(w.category, LatentzWarning)]
     assert len(messages) == 1 and "does not fit these data" in messages[0], messages
-    # the cause: the bead's widths differ (0.76x at the calibration beads' photons); rotated,
-    # its astigmatism lies at 45°
-    assert re.search(r"other axes" if angle else r"widths are 0\.[6-9]\d?x", messages[0])
+    # the cause: the bead's widths fall short of the calibration's (0.76x at the calibration
+    # beads' photons: a blur far beyond a bead's); rotated, its astigmatism lies at 45°
+    assert re.search(r"other axes" if angle else r"by a blur of \d+ nm", messages[0])
     assert summary(locs)["good"] <= 0.1 * len(locs)

@@ -29,7 +29,7 @@ Three independent parts, added in quadrature:
 Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
 scatter about their z(s) curve less than their fit errors say, the camera's noise model
 overstates the noise (a gain too low, or frames averaged before saving) and the fit's part is
-scaled down to the measured scatter.
+scaled down to the measured scatter about each z (:func:`noise_by_z`).
 
 Part 3 is what the paper's error estimate lacks: its fit residuals at the particles shrink as terms
 are added, while the error between particles grows.
@@ -44,9 +44,12 @@ import pandas as pd
 
 __all__ = [
     "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise",
+    "measured_noise", "noise_by_z",
 ]  # fmt: skip
 
+#: Calibration images in each window of :func:`noise_by_z` at least: its scale is known there to
+#: 1/√(2·12) = 20 %.
+NOISE_WINDOW = 12
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
@@ -297,3 +300,30 @@ def measured_noise(
     normalised2 = np.where(use, residual_nm / np.where(use, predicted_nm, 1.0), 0.0) ** 2
     ratio = float(np.sqrt(np.sum(dof * np.sum(normalised2, axis=1)) / m))
     return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0
+
+
+def noise_by_z(
+    z_nm: np.ndarray, scatter2: np.ndarray, *, window: int = NOISE_WINDOW, spans: int = 16
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`measured_noise` as a function of z: how much less the calibration images scatter
+    than their fit errors say, about each z.
+
+    ``z_nm`` (m,): each image's z; ``scatter2`` (m,): its squared residual about its curve over
+    its predicted error squared and over ``1 − h``, h its leverage in the curve's fit
+    (:meth:`~latentz.calibration.polymodel.PolyModel.leverage`): the square of the held-out
+    residual's share of the image's own noise, whose mean is r² at that z. Images sorted by z
+    are averaged in running windows of ``max(window, m // spans)`` consecutive ones (each r to
+    about ``1/sqrt(2 · window)``, and about a ``spans``-th of the range of z where images are
+    many). Returns each window's mean z (nm, ascending, distinct) and sqrt of its mean,
+    at most 1; empty where fewer than two windows' worth of images are finite.
+    """
+    use = np.isfinite(z_nm) & np.isfinite(scatter2)
+    z, q = np.asarray(z_nm)[use], np.asarray(scatter2)[use]
+    size = max(window, z.size // spans)
+    if z.size < 2 * size:
+        return np.empty(0), np.empty(0)
+    order = np.argsort(z, kind="stable")
+    sums = [np.convolve(v[order], np.ones(size), mode="valid") / size for v in (z, q)]
+    centre, index = np.unique(sums[0], return_inverse=True)
+    mean2 = np.bincount(index, weights=sums[1]) / np.bincount(index)
+    return centre, np.minimum(np.sqrt(mean2), 1.0)

@@ -173,6 +173,18 @@ class PolyModel:
         """``y - model(x)`` for data shaped like the fit's."""
         return np.asarray(y, dtype=np.float64) - self(x)
 
+    def leverage(self, x: Any, mask: Any) -> np.ndarray:
+        """Each point's leverage h (the diagonal of the hat matrix, 0–1) in the least-squares
+        fit of its row to the points ``x`` (n, m) where ``mask`` is True, as
+        :meth:`from_estimate` fits them in this model's domain; NaN elsewhere. A point's
+        residual scatters by ``sqrt(1 − h)`` times its noise: the fit follows it by ``h``."""
+        xa = np.asarray(x, dtype=np.float64)
+        use = np.asarray(mask, dtype=bool) & np.isfinite(xa) & self.valid[:, None]
+        t = np.where(use, _scale(np.where(use, xa, 0.0), self.domain), 0.0)
+        vander = cheb.chebvander(t, self.order) * use[..., None]
+        hat = np.einsum("nmk,nkm->nm", vander, np.linalg.pinv(vander))
+        return np.where(use, hat, np.nan)
+
     def coefficients(self) -> np.ndarray:
         """Power-series coefficients ``C_i`` (n, order + 1) in the scaled variable ``t``."""
         k = self.coef.shape[1]

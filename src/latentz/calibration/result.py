@@ -30,6 +30,7 @@ from latentz.calibration.errors import (
     field_line,
     fit_sigma_s,
     measured_noise,
+    noise_by_z,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
@@ -429,34 +430,75 @@ class Calibration:
                               amplitude_ref=ref)  # fmt: skip
         return np.abs(self._error_model("z")[2][p](s)) * sigma_s
 
-    @property
-    def noise_scale(self) -> float:
-        """Factor (≤ 1) on the fit's part of ``z_err_nm``: the kept particles' usable calibration
-        images against their own fit errors (:func:`~latentz.calibration.errors.
-        measured_noise`); 1 for traces without fit errors."""
-        if "noise_scale" not in self._cache:
+    def _calibration_scatter(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The kept particles' calibration images (k, n_z) about their inverse z(s): z (nm),
+        residual (nm), the fit's part of ``z_err_nm`` that :meth:`apply` would give each
+        (nm) and the image's leverage in its inverse's fit; NaN for images the inverse was not
+        fitted to (outside its monotonic range). Empty without fit errors in the traces."""
+        if "calibration_scatter" not in self._cache:
             model, tr, k = self.local.shapes[self.shape], self.traces, self.kept
-            self._cache["noise_scale"] = 1.0
+            self._cache["calibration_scatter"] = (np.empty((0, 0)),) * 4
             if all(c in tr.data for c in _ERROR_COLUMNS) and k.size:
                 n_z = self.local.z_nm.shape[1]
                 params = np.stack([tr[c][k] for c in _PARAMS], axis=-1).reshape(-1, 7)
                 errors = np.stack([tr[c][k] for c in _ERROR_COLUMNS], axis=-1).reshape(-1, 4)
                 corr = np.stack([tr.data.get(c, np.full(tr["x"].shape, np.nan))[k]
                                  for c in CORRELATION_COLUMNS], axis=-1).reshape(-1, 6)  # fmt: skip
-                use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
+                z, values, span = self.local.z_nm[k], model.values[k], model.z_range[k]
+                fitted = np.isfinite(values) & (z >= span[:, :1]) & (z <= span[:, 1:])
                 p = np.repeat(k, n_z)
-                s = np.where(use, model.values[k], 0.0).ravel()
+                s = np.where(fitted, values, 0.0).ravel()
                 part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
-                predicted = np.where(use, part.reshape(len(k), n_z), np.nan)
-                z = self.local.z_nm[k]
-                residual = model.inverse[k].residuals(model.values[k], z)
-                span = model.z_range[k]  # the inverse's planes: finite, in its monotonic range
-                fitted = np.isfinite(model.values[k]) & (z >= span[:, :1]) & (z <= span[:, 1:])
+                self._cache["calibration_scatter"] = (
+                    z,
+                    model.inverse[k].residuals(values, z),
+                    np.where(fitted, part.reshape(len(k), n_z), np.nan),
+                    model.inverse[k].leverage(values, fitted),
+                )
+        return self._cache["calibration_scatter"]
+
+    @property
+    def noise_scale(self) -> float:
+        """Factor (≤ 1) on the fit's part of ``z_err_nm`` over all z: the kept particles'
+        usable calibration images against their own fit errors (:func:`~latentz.calibration.
+        errors.measured_noise`); 1 for traces without fit errors. Where it is below 1,
+        :meth:`apply` uses its value about each z (:attr:`noise_scale_by_z`)."""
+        if "noise_scale" not in self._cache:
+            z, residual, predicted, leverage = self._calibration_scatter()
+            self._cache["noise_scale"] = 1.0
+            if z.size:
+                model, k = self.local.shapes[self.shape], self.kept
+                use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
                 self._cache["noise_scale"] = measured_noise(
-                    residual, predicted, n_params=model.inverse.order + 1,
-                    n_fitted=fitted.sum(axis=1),
+                    residual, np.where(use, predicted, np.nan),
+                    n_params=model.inverse.order + 1, n_fitted=np.isfinite(leverage).sum(axis=1),
                 )  # fmt: skip
         return self._cache["noise_scale"]
+
+    @property
+    def noise_scale_by_z(self) -> tuple[np.ndarray, np.ndarray]:
+        """:attr:`noise_scale` about each z: tilt-corrected z (nm, ascending) and the factor
+        (≤ 1) there, from every image the kept particles' inverses were fitted to, each
+        residual over its fit's part and corrected for its leverage
+        (:func:`~latentz.calibration.errors.noise_by_z`). Empty where :attr:`noise_scale` is 1
+        (the images scatter as their fits say) or the images are too few to follow z."""
+        if "noise_scale_by_z" not in self._cache:
+            self._cache["noise_scale_by_z"] = (np.empty(0), np.empty(0))
+            if self.noise_scale < 1:
+                z, residual, predicted, leverage = self._calibration_scatter()
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    scatter2 = (residual / predicted) ** 2 / (1 - leverage)
+                self._cache["noise_scale_by_z"] = noise_by_z(z.ravel(), scatter2.ravel())
+        return self._cache["noise_scale_by_z"]
+
+    def _noise_scale_at(self, z: np.ndarray) -> np.ndarray:
+        """The factor on the fit's part of ``z_err_nm`` at tilt-corrected z (nm):
+        :attr:`noise_scale_by_z` there (held beyond its ends), or :attr:`noise_scale` where
+        that is empty."""
+        grid, scale = self.noise_scale_by_z
+        if grid.size == 0:
+            return np.full(np.shape(z), self.noise_scale)
+        return np.interp(np.where(np.isfinite(z), z, 0.0), grid, scale)
 
     def _model_sigma(
         self, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
@@ -702,7 +744,8 @@ class Calibration:
         Uncertainties combine the spots' own Cramér–Rao errors (when they carry them), the
         nearest particle's local model errors and the field model's cross-validated error
         (:mod:`latentz.calibration.errors`); the spots' own part is scaled by
-        :attr:`noise_scale` where the calibration images show less noise than their fits say.
+        :attr:`noise_scale_by_z` where the calibration images show less noise than their fits
+        say.
 
         Parameters
         ----------
@@ -840,7 +883,7 @@ class Calibration:
                                             ref)  # fmt: skip
             else:
                 fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
-            fit_part = self.noise_scale * fit_part
+            fit_part = self._noise_scale_at(z) * fit_part
             z_err = np.hypot(fit_part, model_part)
         else:
             z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)

@@ -10,14 +10,20 @@ z readout cannot absorb are measured over the table's converged, unique, located
   calibration's own trace points. Each angle's standard error comes from resampling its spots or
   trace points, so a weakly astigmatic calibration (round images, a poorly known axis) or few
   dim spots widen it;
-- **the width scale**: the median over the spots of their mean width over the calibration's at
-  their z, as a log ratio, each carried to the calibration particles' photons along
-  :data:`PHOTON_SLOPE` (dim spots fit narrower: the Gaussian sees less of the PSF's wings).
-  A point molecule looks a little narrower than the bead it was calibrated with; another pixel
-  size scales every width, and another wavelength the in-focus ones.
+- **the widths**, each spot's carried to the calibration particles' photons along
+  :data:`PHOTON_SLOPE` (dim spots fit narrower: the Gaussian sees less of the PSF's wings),
+  against the calibration's at the spot's z, two ways: the median log ratio of the mean widths
+  (another pixel size scales every width up or down), and the median **blur**, the calibration's
+  squared widths less the spot's (nm², the mean over x and y), read as the σ of a blur: a
+  particle's image is the PSF blurred by the particle (σ = 0.22 × its diameter for a sphere,
+  22 nm for a 100 nm bead), added in quadrature at every z, so a point molecule falls short of
+  it by that blur however wide the astigmatism makes both. A calibration made at a longer
+  wavelength falls short by far more (about 60 nm at 1.2x), where a width ratio is diluted
+  by the astigmatic spread of strongly astigmatic images.
 
-The calibration is blamed when the axis lies more than :data:`AXIS_LIMIT_DEG` off, or the width
-scale outside :data:`LOG_WIDTH_BAND`, by more than :data:`SIGNIFICANCE` standard errors. A
+The calibration is blamed when the axis lies more than :data:`AXIS_LIMIT_DEG` off, the log width
+ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond :data:`BLUR_LIMIT_NM`, by more than
+:data:`SIGNIFICANCE` standard errors. A
 calibration whose astigmatism lies 90° off is not seen: it reads every z mirrored (z → −z), and
 the shapes fit as well as the right calibration's; only the PSF's asymmetry about focus tells
 them apart.
@@ -43,12 +49,17 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 #: calibration is blamed: right calibrations give within ±2° (1–2 standard errors), one whose
 #: astigmatism lies 45° off gives 43–44°.
 AXIS_LIMIT_DEG = 10.0
-#: Band of the spots' log width ratio (at the calibration's photons) that a right calibration
-#: gives: 100 nm beads against point molecules of 10³–10⁴ photons give −0.048 to +0.014
-#: (±0.004–0.014) on 12 tables of 10 random microscopes at 0.5–1.5 molecules per µm²; another
-#: pixel size (1.25x) gives +0.074 and +0.090, another wavelength (1.2x) −0.115 and −0.160
-#: (benchmarks/bench_wrong_calibration.py, tests/pipeline/test_verdicts_truth.py).
-LOG_WIDTH_BAND = (-0.075, 0.04)
+#: The spots' log width ratio (at the calibration's photons) above which they are wider than a
+#: right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.049 to
+#: +0.014 (±0.004–0.014) on random microscopes at 0.5–1.5 molecules per µm²; another pixel size
+#: (1.25x) gives +0.062 to +0.090 (benchmarks/bench_wrong_calibration.py,
+#: tests/pipeline/test_verdicts_truth.py).
+LOG_WIDTH_LIMIT = 0.04
+#: Blur (σ, nm) by which the spots' widths may fall short of the calibration's: 100 nm beads
+#: against point molecules of 10³–10⁴ photons give −13 to +37 nm (±2–20 nm) on 12 random
+#: microscopes, a calibration at 1.2x the wavelength 58–69 nm on 6 (strongly and weakly
+#: astigmatic; benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm sphere.
+BLUR_LIMIT_NM = 50.0
 #: Change of a spot's log mean width per unit of log photons: dim spots fit narrower (the
 #: Gaussian sees less of the PSF's wings). Measured 0.018–0.068, median 0.035, on the right and
 #: wrong calibrations of benchmarks/bench_wrong_calibration.py (0.5 molecules per µm²); fixed,
@@ -69,7 +80,14 @@ class Mismatch(NamedTuple):
     axis_se_deg: float
     log_width: float  #: log of the spots' mean width over the calibration's
     log_width_se: float
+    blur_nm2: float  #: the calibration's squared widths less the spots', nm²
+    blur_se_nm2: float
     spots: int
+
+    @property
+    def blur_nm(self) -> float:
+        """The blur as a σ (nm), negative where the spots are the wider."""
+        return float(np.sign(self.blur_nm2) * np.sqrt(abs(self.blur_nm2)))
 
     @property
     def axis_off(self) -> bool:
@@ -77,9 +95,8 @@ class Mismatch(NamedTuple):
 
     @property
     def widths_off(self) -> bool:
-        low, high = LOG_WIDTH_BAND
-        margin = SIGNIFICANCE * self.log_width_se
-        return self.log_width + margin < low or self.log_width - margin > high
+        wider = self.log_width - SIGNIFICANCE * self.log_width_se > LOG_WIDTH_LIMIT
+        return wider or self.blur_nm2 - SIGNIFICANCE * self.blur_se_nm2 > BLUR_LIMIT_NM**2
 
 
 def _checked(table: pd.DataFrame) -> np.ndarray:
@@ -105,20 +122,28 @@ def _wrap(angle: np.ndarray | float) -> np.ndarray | float:
     return (angle + np.pi / 4) % (np.pi / 2) - np.pi / 4
 
 
-def _log_width(table: pd.DataFrame, cal: Calibration) -> tuple[float, float]:
-    """Median log mean-width ratio of the spots over the calibration at their z, each spot's
-    carried to the calibration particles' median photons along :data:`PHOTON_SLOPE`, and the
-    median's standard error (1.2533 robust standard deviations over √n)."""
+def _median(values: np.ndarray) -> tuple[float, float]:
+    """Median of the finite ``values`` and its standard error (1.2533 robust standard
+    deviations over √n)."""
+    values = values[np.isfinite(values)]
+    centre = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - centre)))
+    return centre, 1.2533 * spread / np.sqrt(values.size)
+
+
+def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float, float]:
+    """The spots' median log mean-width ratio over the calibration at their z and their
+    median blur (nm², the calibration's squared widths less the spot's, mean of x and y), each
+    with its standard error; every spot's widths carried to the calibration particles' median
+    photons along :data:`PHOTON_SLOPE`."""
     z = table["z_nm"].to_numpy(float)
     curves = cal.curves_at(table["cal_particle"].to_numpy(int), z)
-    spot = np.abs(table["wx"].to_numpy(float)) + np.abs(table["wy"].to_numpy(float))
-    ratio = np.log(spot / (np.abs(curves["wx"]) + np.abs(curves["wy"])))
     reference = np.log(np.nanmedian(cal.traces["photons"][cal.kept]))
-    ratio += PHOTON_SLOPE * (reference - np.log(table["photons"].to_numpy(float)))
-    ratio = ratio[np.isfinite(ratio)]
-    centre = float(np.median(ratio))
-    spread = 1.4826 * float(np.median(np.abs(ratio - centre)))
-    return centre, 1.2533 * spread / np.sqrt(ratio.size)
+    carry = np.exp(PHOTON_SLOPE * (reference - np.log(table["photons"].to_numpy(float))))
+    wx, wy = (carry * np.abs(table[c].to_numpy(float)) for c in ("wx", "wy"))
+    cx, cy = np.abs(curves["wx"]), np.abs(curves["wy"])
+    blur = (cx**2 + cy**2 - wx**2 - wy**2) / 2 * cal.camera.pixel_size_nm**2
+    return (*_median(np.log((wx + wy) / (cx + cy))), *_median(blur))
 
 
 def calibration_mismatch(table: pd.DataFrame, calibration: Calibration) -> Mismatch:
@@ -127,15 +152,15 @@ def calibration_mismatch(table: pd.DataFrame, calibration: Calibration) -> Misma
     checked = _checked(table)
     n = int(checked.sum())
     if n < MIN_SPOTS:
-        return Mismatch(np.nan, np.nan, np.nan, np.nan, n)
+        return Mismatch(np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, n)
     spots = table[checked]
     angle, se = _axis(*(spots[c].to_numpy(float) for c in ("wx", "wy", "rho")), seed=n)
     traces = calibration.traces
     kept = calibration.kept
     cal_angle, cal_se = _axis(*(traces[c][kept] for c in ("wx", "wy", "rho")), seed=n + 1)
     axis = np.degrees(_wrap(angle - cal_angle))
-    log_width, log_se = _log_width(spots, calibration)
-    return Mismatch(float(axis), float(np.degrees(np.hypot(se, cal_se))), log_width, log_se, n)
+    widths = _widths(spots, calibration)
+    return Mismatch(float(axis), float(np.degrees(np.hypot(se, cal_se))), *widths, n)
 
 
 def _cause(mismatch: Mismatch) -> str:
@@ -147,13 +172,16 @@ def _cause(mismatch: Mismatch) -> str:
             f"({mismatch.axis_deg:+.0f}° ± {mismatch.axis_se_deg:.0f}°): another microscope, "
             "or a rotated camera"
         )
-    if mismatch.widths_off:
-        ratio = float(np.exp(mismatch.log_width))
+    if mismatch.widths_off and mismatch.blur_nm > BLUR_LIMIT_NM:
         causes.append(
-            f"their widths are {ratio:.2g}x the calibration's: emitters "
-            f"{'smaller' if ratio < 1 else 'larger'} than the calibration particles (a "
-            "particle's image is the PSF blurred by the particle, so it changes with z unlike a "
-            "point's), or another pixel size, wavelength or objective"
+            f"their widths fall short of the calibration's by a blur of {mismatch.blur_nm:.0f} "
+            f"nm (σ; a 100 nm bead blurs by 22 nm): emitters smaller than the calibration "
+            "particles, or another wavelength or objective"
+        )
+    elif mismatch.widths_off:
+        causes.append(
+            f"their widths are {np.exp(mismatch.log_width):.2g}x the calibration's: emitters "
+            "larger than the calibration particles, or another pixel size or objective"
         )
     return "; ".join(causes)
 
