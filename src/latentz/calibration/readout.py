@@ -36,6 +36,9 @@ __all__ = ["SHAPE_PARAMS", "JointZ", "joint_z", "shape_covariance"]
 SHAPE_PARAMS = ("wx", "wy", "rho")
 #: d² at the minimum beyond which the curves do not hold the spot: χ²(2)'s 99th percentile.
 CHI2_HELD = 9.21
+#: Values in PARAMS order that stand in for a spot's non-finite ones in the Cramér–Rao
+#: covariance (ρ = 1 has none).
+_PLACEHOLDER = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
 #: Spots searched at once (the distances take spots × planes × 3 values).
 _CHUNK = 2048
 
@@ -80,7 +83,7 @@ def shape_covariance(
     if errors is None:
         centred = params.copy()
         centred[:, 0] = centred[:, 1] = (roi_size - 1) / 2
-        centred = np.where(np.isfinite(centred), centred, 1.0)
+        centred = np.where(np.isfinite(centred), centred, _PLACEHOLDER)  # NaN rows: NaN z
         which = [PARAMS.index(k) for k in SHAPE_PARAMS]
         return covariance(centred, shape=roi_size, readnoise=readnoise)[:, which][:, :, which]
     cov = fit_covariance(params, errors, correlations, roi_size=roi_size, readnoise=readnoise)
