@@ -635,14 +635,15 @@ class Calibration:
         """The joint readout (:func:`~latentz.calibration.readout.joint_z`) of ``spots`` on
         their particles ``p``, weighted by the covariance of their fits (:func:`~latentz.
         calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr`` columns where
-        they carry them); ``shift`` (n, 3), if given, is taken off their fitted wx, wy, ρ."""
+        they carry them) times :attr:`noise_scale` squared; ``shift`` (n, 3), if given, is
+        taken off their fitted wx, wy, ρ."""
         params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
         errors = corr = None
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
-        cov = shape_covariance(params, errors, corr, roi_size=self.roi_size,
-                               readnoise=self.camera.readnoise)  # fmt: skip
+        cov = self.noise_scale**2 * shape_covariance(params, errors, corr, roi_size=self.roi_size,
+                                                     readnoise=self.camera.readnoise)  # fmt: skip
         fitted = params[:, 4:7] if shift is None else params[:, 4:7] - shift
         return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov)
 
@@ -846,11 +847,10 @@ class Calibration:
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
             if joint is None:
-                fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0),
-                                            ref)  # fmt: skip
-            else:
+                fit_part = self.noise_scale * self._fit_part_z(
+                    params, errors, corr, p, np.where(in_range, s, 0.0), ref)  # fmt: skip
+            else:  # its fit covariance already scaled (joint_readout)
                 fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
-            fit_part = self.noise_scale * fit_part
             z_err = np.hypot(fit_part, model_part)
         else:
             z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
