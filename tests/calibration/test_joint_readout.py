@@ -91,3 +91,22 @@ def test_shape_covariance_from_errors_and_correlations():
     sd = errors[0, 1:]
     expected = np.array([[1, 0.6, -0.3], [0.6, 1, 0.25], [-0.3, 0.25, 1]]) * np.outer(sd, sd)
     np.testing.assert_allclose(cov, expected, rtol=1e-12)
+
+
+def test_bright_spots_sigma_is_their_bound_between_planes():
+    """Spots 10x brighter: σ (~2 nm) far below the planes' half step (10 nm). The best plane's
+    distance, up to 10 nm of z, must neither widen σ nor count as the curves not holding the
+    spot: σ is the bound and covers 68 %."""
+    rng = np.random.default_rng(5)
+    curves_at = _curves(gamma_nm=300.0)
+    z_true = rng.uniform(-600.0, 600.0, N)
+    fitted, cov = _spots(curves_at, z_true, rng)
+    c = curves_at(np.zeros(N, int), z_true)
+    mean = np.column_stack([c[k] for k in ("wx", "wy", "rho")])
+    fitted, cov = mean + 0.1 * (fitted - mean), 0.01 * cov
+    out = joint_z(curves_at, GRID[None, :], np.zeros((1, 3)), np.zeros(N, int), fitted, cov)
+    bound = _bound(curves_at, z_true, cov)
+    assert np.median(bound) < np.diff(GRID)[0] / 4
+    assert np.median(out.sigma_nm / bound) == pytest.approx(1.0, abs=0.02)
+    sigma = np.fmax(out.sigma_nm, out.spread_nm)
+    assert np.mean(np.abs(out.z_nm - z_true) < sigma) == pytest.approx(0.683, abs=COVERAGE_TOL)

@@ -33,7 +33,7 @@ def _focal_field(rng, rms_nm: float = 100.0, wavelength_px: float = 250.0, waves
 
 
 def _microscope(seed: int):
-    """A calibration and the emitters beyond it: (cal, localized spots, true z nm)."""
+    """A calibration and the emitters beyond it: (cal, their fitted spots, true z nm)."""
     rng = np.random.default_rng(seed)
     field = _focal_field(rng)
     gx, gy = np.meshgrid(np.arange(25.0, 300.0, 50.0), np.arange(25.0, 500.0, 50.0))
@@ -45,7 +45,7 @@ def _microscope(seed: int):
     test, _ = make_traces(len(emitters), z_nm=np.arange(-1500.0, 1500.1, 100.0),
                           z_f=field(emitters), positions=emitters, noise=0.02,
                           seed=seed + 100)  # fmt: skip
-    return cal, cal.apply(traces_table(test), error_parts=True), np.tile(test.z_nm, len(emitters))
+    return cal, traces_table(test), np.tile(test.z_nm, len(emitters))
 
 
 @pytest.fixture(scope="module")
@@ -68,21 +68,26 @@ def test_pairs_hold_each_particle_localized_by_its_nearer_and_farther_neighbours
     assert table["in_range"].sum() > 0.9 * monotonic.sum()
 
 
-def test_error_parts_add_in_quadrature_to_z_err(microscopes):
-    _, out, _ = microscopes[0]
+@pytest.mark.parametrize("z_readout", ["shape", "joint"])
+def test_error_parts_add_in_quadrature_to_z_err(microscopes, z_readout):
+    cal, spots, _ = microscopes[0]
+    out = cal.apply(spots, error_parts=True, z_readout=z_readout)
     out = out[out["in_range"]]
     parts = np.hypot(out["z_err_fit_nm"], out["z_err_field_nm"])
     assert np.all(out["z_err_fit_nm"] > 0) and np.all(out["z_err_field_nm"] > 0)
     assert np.all(parts <= out["z_err_nm"] * (1 + 1e-12))  # the local model's σ is the rest
 
 
-def test_one_sigma_covers_68_percent_of_emitters_beyond_the_particles(microscopes):
-    """The errors of one microscope's spots share its few edge particles and one smooth field,
+@pytest.mark.parametrize("z_readout", ["shape", "joint"])
+def test_one_sigma_covers_68_percent_of_emitters_beyond_the_particles(microscopes, z_readout):
+    """The errors of one microscope's spots share its few edge particles and one smooth field
+    (read from the one shape value or jointly, each with its own held-out pairs),
     so they are as many independent values as the particles used (counted by their share of
     the spots, summed over the microscopes); the bounds are 2.58 binomial standard errors of
     that count (a 1 % chance of failing when the errors are exactly right)."""
     covered, independent = [], 0.0
-    for cal, out, z_true in microscopes:
+    for cal, spots, z_true in microscopes:
+        out = cal.apply(spots, z_readout=z_readout)
         keep = out["in_range"].to_numpy()
         err = out["z_nm"].to_numpy()[keep] - z_true[keep]
         covered.append(np.abs(err) <= out["z_err_nm"].to_numpy()[keep])

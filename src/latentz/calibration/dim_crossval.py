@@ -20,11 +20,15 @@ the same held-out particle is an emitter farther from the particle whose model i
 :func:`pair_table` holds these errors with the distances, the z error of a dim emitter as it
 grows with the distance to the particle that localizes it, measured at the user's own
 particles (:meth:`~latentz.calibration.Calibration.apply` reads it with
-:func:`~latentz.calibration.errors.field_sigma`).
+:func:`~latentz.calibration.errors.field_sigma`). For the joint readout of z
+(:mod:`~latentz.calibration.readout`) the held-out particle's wx, wy, ρ, each corrected alike, are
+read on its neighbour's curves instead, weighted by the Cramér–Rao covariance of that dim image:
+the two readouts err differently between particles, and each spot's σ takes its own readout's.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -32,6 +36,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz.calibration.dimming import DIM_COLUMNS, background_ratio, shape_shift
+from latentz.calibration.readout import SHAPE_PARAMS, joint_z, shape_covariance
 from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value
 
@@ -59,11 +64,14 @@ def _partners(cal: Calibration, rank: int) -> tuple[np.ndarray, np.ndarray, np.n
     return rows, rows[nearest[:, rank]], distance[:, rank]
 
 
-def dim_held_out(cal: Calibration, *, ratio: float, rank: int = 1) -> np.ndarray:
+def dim_held_out(
+    cal: Calibration, *, ratio: float, rank: int = 1, readout: str = "shape"
+) -> np.ndarray:
     """(n, n_z) z error (nm) of an emitter of background ratio ``ratio`` = (b + readnoise²) / A
     imaged like each kept particle at each plane, localized
-    with its ``rank``-th nearest other kept particle's refits and inverse model (module notes);
-    NaN for culled particles and where the model does not cover it."""
+    with its ``rank``-th nearest other kept particle's refits and inverse model (module notes),
+    or with ``readout="joint"`` its wx, wy, ρ read on that particle's curves
+    (:func:`_joint_estimate`); NaN for culled particles and where the model does not cover it."""
     local, traces, shape = cal.local, cal.traces, cal.shape
     model = local.shapes[shape]
     n, n_z = model.values.shape
@@ -97,17 +105,46 @@ def dim_held_out(cal: Calibration, *, ratio: float, rank: int = 1) -> np.ndarray
     c_spot = np.full(i.size, float(ratio))
     c_own = background_ratio(own("background"), own("amplitude"), readnoise)
     c_near = background_ratio(neighbour("background"), neighbour("amplitude"), readnoise)
-    if not all(name in traces.data for name in DIM_COLUMNS):  # no refits: no correction
-        s = model.values[i, k]
-    else:
-        seen = model.values[i, k] + shape_shift(shape_of(i), own, c_spot, c_own)
-        correction = shape_shift(shape_of(p), neighbour, c_spot, c_near)
-        s = seen - np.where(np.isfinite(correction), correction, 0.0)
+    refits = all(name in traces.data for name in DIM_COLUMNS)
+
+    def seen(value: np.ndarray, owner_of: Callable) -> np.ndarray:
+        """``value`` of the held-out image at c_spot, less the partner's correction to it."""
+        if not refits:  # no refits: no correction
+            return value
+        shift = shape_shift(owner_of(i), own, c_spot, c_own)
+        correction = shape_shift(owner_of(p), neighbour, c_spot, c_near)
+        return value + shift - np.where(np.isfinite(correction), correction, 0.0)
+
+    if readout == "joint":  # each of wx, wy, ρ shifted as a shape value is
+        fitted = np.column_stack([
+            seen(own(name), lambda _, j=j: lambda a, wx, wy, rho: (wx, wy, rho)[j])
+            for j, name in enumerate(SHAPE_PARAMS)])  # fmt: skip
+        amplitude = own("amplitude")
+        background = np.where(c_spot > c_own, c_spot * amplitude - readnoise**2,
+                              own("background"))  # fmt: skip
+        errors[i, k] = _joint_estimate(cal, p, fitted, amplitude, background) - z
+        return errors
+    s = seen(model.values[i, k], shape_of)
     inverse = model.inverse[p]
     inside = inverse.contains(s) & np.isfinite(s)
     estimate = np.where(inside, inverse(np.where(inside, s, 0.0)), np.nan)
     errors[i, k] = estimate - z
     return errors
+
+
+def _joint_estimate(cal: Calibration, p: np.ndarray, fitted: np.ndarray, amplitude: np.ndarray,
+                    background: np.ndarray) -> np.ndarray:  # fmt: skip
+    """z (nm) of held-out images of fitted (wx, wy, ρ) ``fitted`` (m, 3), peak ``amplitude``
+    and ``background`` (photoelectrons per pixel) read jointly on particles ``p``'s curves
+    (:func:`~latentz.calibration.readout.joint_z`), weighted as an emitter's fit is: by the
+    Cramér–Rao covariance of that image (its scale, and the curves' scatter, do not move the
+    minimum of a dim emitter's distance, whose fit noise rules it)."""
+    params = np.column_stack([np.zeros((len(p), 2)), amplitude, np.maximum(background, 0.0),
+                              fitted])  # fmt: skip
+    cov = shape_covariance(params, None, None, roi_size=cal.roi_size,
+                           readnoise=cal.camera.readnoise)  # fmt: skip
+    no_scatter = np.zeros((len(cal.local.z_nm), len(SHAPE_PARAMS)))
+    return joint_z(cal.curves_at, cal.local.z_nm, no_scatter, p, fitted, cov).z_nm
 
 
 def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -162,12 +199,13 @@ def _judged(cal: Calibration, errors: np.ndarray, rank: int) -> np.ndarray:
     return out
 
 
-def pair_table(cal: Calibration) -> pd.DataFrame:
+def pair_table(cal: Calibration, readout: str = "shape") -> pd.DataFrame:
     """Held-out z errors of each kept particle seen as an emitter at each background ratio c of
     :data:`~latentz.calibration.dimming.LEVELS` (only the bright image where there are no
     refits) and localized by each of its :data:`PAIR_RANKS` nearest other particles
-    (:func:`dim_held_out`). Columns: ``c``, ``model`` ("pairs"), ``particle``, ``z_nm``,
-    ``distance_px`` (to the particle that localized it), ``err_z_nm`` and ``in_range`` (the
+    (:func:`dim_held_out` with ``readout``). Columns: ``c``, ``model`` ("pairs"),
+    ``particle``, ``z_nm``, ``distance_px`` (to the particle that localized it), ``err_z_nm``
+    and ``in_range`` (the
     error is known, at a plane of the held-out particle's monotonic range, as
     :func:`~latentz.calibration.crossval.crossval` holds out, and its z within the span that
     particle was imaged over, as :meth:`~latentz.calibration.Calibration.apply` requires), the
@@ -181,7 +219,8 @@ def pair_table(cal: Calibration) -> pd.DataFrame:
         rows, partners, distance = _partners(cal, rank)
         z = cal.local.z_nm[rows]
         for c in (LEVELS if refits else (0.0,)) if rows.size else ():
-            err = _judged(cal, dim_held_out(cal, ratio=c, rank=rank), rank)[rows].ravel()
+            held = dim_held_out(cal, ratio=c, rank=rank, readout=readout)
+            err = _judged(cal, held, rank)[rows].ravel()
             frames.append(pd.DataFrame({
                 "c": c, "model": "pairs", "particle": np.repeat(rows, n_z),
                 "z_nm": z.ravel(), "distance_px": np.repeat(distance, n_z),

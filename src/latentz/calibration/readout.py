@@ -20,7 +20,9 @@ the minimum; ``spread_nm`` is the farthest plane whose d² lies within 1 of the 
 σ itself for one clean minimum and reaches a second minimum where there is one (the sign of
 defocus unresolved: weak astigmatism, dim spots). Where the curves do not hold the spot (d² at
 the minimum beyond :data:`CHI2_HELD`), C is scaled by d²/2 (2 degrees of freedom: 3 values, 1
-fitted z), and both σ and the spread grow with it.
+fitted z), and both σ and the spread grow with it. The minimum is d² at z itself, not at the
+best plane: up to half a step from z, that plane's d² also counts the step, which for a bright
+spot (σ below the step) would read as curves that do not hold it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ __all__ = ["SHAPE_PARAMS", "JointZ", "joint_z", "shape_covariance"]
 SHAPE_PARAMS = ("wx", "wy", "rho")
 #: d² at the minimum beyond which the curves do not hold the spot: χ²(2)'s 99th percentile.
 CHI2_HELD = 9.21
+#: Values in PARAMS order that stand in for a spot's non-finite ones in the Cramér–Rao
+#: covariance (ρ = 1 has none).
+_PLACEHOLDER = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
 #: Spots searched at once (the distances take spots × planes × 3 values).
 _CHUNK = 2048
 
@@ -80,7 +85,7 @@ def shape_covariance(
     if errors is None:
         centred = params.copy()
         centred[:, 0] = centred[:, 1] = (roi_size - 1) / 2
-        centred = np.where(np.isfinite(centred), centred, 1.0)
+        centred = np.where(np.isfinite(centred), centred, _PLACEHOLDER)  # NaN rows: NaN z
         which = [PARAMS.index(k) for k in SHAPE_PARAMS]
         return covariance(centred, shape=roi_size, readnoise=readnoise)[:, which][:, :, which]
     cov = fit_covariance(params, errors, correlations, roi_size=roi_size, readnoise=readnoise)
@@ -140,9 +145,11 @@ def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
     d2 = np.where(np.isfinite(d2), d2, np.inf)
     rows = np.arange(len(p))
     k = np.argmin(d2, axis=1)
-    best = d2[rows, k]
-    scale = np.where(best > CHI2_HELD, best / 2, 1.0)  # curves that do not hold the spot
     z = _parabola_vertex(grid, d2, k)
+    # d² at z itself: at the best plane, up to half a step off z, it also counts that step
+    r = fitted - _curves(curves_at, p, z)
+    best = np.fmin(np.einsum("mi,mij,mj->m", r, weight, r), d2[rows, k])
+    scale = np.where(best > CHI2_HELD, best / 2, 1.0)  # curves that do not hold the spot
     step = np.median(np.diff(grid, axis=1), axis=1)
     slope = (_curves(curves_at, p, z + step / 2) - _curves(curves_at, p, z - step / 2)) / step[
         :, None

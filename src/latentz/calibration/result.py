@@ -524,36 +524,40 @@ class Calibration:
         return line.sigma(z, distance)
 
     def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
-                       key: str) -> FieldLine:  # fmt: skip
+                       key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
         """The :class:`~latentz.calibration.errors.FieldLine` of the held-out errors
-        ``table()`` with the local models' σ at its rows, made once and cached under ``key``."""
+        ``table()`` with the local models' σ at its rows (``local_models``; False: errors not
+        read through the local models, none taken off), made once and cached under ``key``."""
         if key not in self._cache:
             held_out = table()
             scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
             rows = held_out["particle"].to_numpy(int)
-            model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
+            model_nm = None
+            if local_models:
+                model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
             self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm)
         return self._cache[key]
 
-    def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None,
-                    distance: np.ndarray) -> np.ndarray:  # fmt: skip
+    def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None, distance: np.ndarray,
+                    readout: str = "shape") -> np.ndarray:  # fmt: skip
         """1σ (nm) of the z error of spots at ``z`` of background ratio ``c_spot`` (None: as
         bright as the calibration) ``distance`` px from the particle that localizes them, from
-        held-out particles localized by their nearer and farther neighbours
-        (:func:`~latentz.calibration.dim_crossval.pair_table`): at each of its ratios c the
-        :func:`~latentz.calibration.errors.field_sigma` line in distance, then linear in log c
-        between them."""
+        held-out particles localized by their nearer and farther neighbours with the z
+        ``readout`` of :meth:`apply` (:func:`~latentz.calibration.dim_crossval.pair_table`): at
+        each of its ratios c the :func:`~latentz.calibration.errors.field_sigma` line in
+        distance, then linear in log c between them."""
         from latentz.calibration.dim_crossval import pair_table
 
-        if "pair_table" not in self._cache:
-            self._cache["pair_table"] = pair_table(self)
-        table = self._cache["pair_table"]
+        key = f"pair_table/{readout}"
+        if key not in self._cache:
+            self._cache[key] = pair_table(self, readout)
+        table = self._cache[key]
         if len(table) == 0 or not table["in_range"].any():
             return np.zeros(np.shape(z))
         levels = np.unique(table["c"].to_numpy())
         by_level = np.array([
             self._held_out_line(lambda c=c: table[table["c"] == c], "pairs", "z",
-                                f"pair_line/{c}").sigma(z, distance)
+                                f"pair_line/{readout}/{c}", readout == "shape").sigma(z, distance)
             for c in levels])  # fmt: skip
         if levels.size == 1 or c_spot is None:
             return by_level[0]
@@ -673,14 +677,15 @@ class Calibration:
         """The joint readout (:func:`~latentz.calibration.readout.joint_z`) of ``spots`` on
         their particles ``p``, weighted by the covariance of their fits (:func:`~latentz.
         calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr`` columns where
-        they carry them); ``shift`` (n, 3), if given, is taken off their fitted wx, wy, ρ."""
+        they carry them) times :attr:`noise_scale` squared; ``shift`` (n, 3), if given, is
+        taken off their fitted wx, wy, ρ."""
         params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
         errors = corr = None
         if all(c in spots.columns for c in _ERROR_COLUMNS):
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
-        cov = shape_covariance(params, errors, corr, roi_size=self.roi_size,
-                               readnoise=self.camera.readnoise)  # fmt: skip
+        cov = self.noise_scale**2 * shape_covariance(params, errors, corr, roi_size=self.roi_size,
+                                                     readnoise=self.camera.readnoise)  # fmt: skip
         fitted = params[:, 4:7] if shift is None else params[:, 4:7] - shift
         return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov)
 
@@ -812,7 +817,7 @@ class Calibration:
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_field = self._z_field_error(spots, cols, z, distance)
+        z_field = self._z_field_error(spots, cols, z, distance, z_readout)
         out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
         if error_parts:
             out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
@@ -822,21 +827,27 @@ class Calibration:
         return out
 
     def _z_field_error(self, spots: pd.DataFrame, cols: dict, z: np.ndarray,
-                       distance: np.ndarray) -> np.ndarray:  # fmt: skip
+                       distance: np.ndarray, readout: str) -> np.ndarray:  # fmt: skip
         """The part of σ_z (nm) that varies across the field, as held-out particles measure
         it: the field model's cross-validated error with the dimming correction's transfer
         (at the spot's background ratio c), or, where larger, the error of held-out particles
         seen as emitters of that c and localized by neighbours as far away as the spot is from
-        its particle (:meth:`_pair_sigma`). That is ``nearest``'s error: for another field
+        its particle with the z ``readout`` (:meth:`_pair_sigma`). That is ``nearest``'s error
+        (with the joint readout, the pairs' alone: the cross-validation and the transfer are
+        the shape value's, and the pairs hold both for the joint readout): for another field
         model it counts only beyond the distances its cross-validation held out (above their
         90th percentile), where the model extrapolates."""
-        field = self._field_sigma("z", z, distance)
         c_spot = None
         if "background" in spots.columns and "dim0_wx" in self.traces.data:
             c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
                                       self.camera.readnoise)  # fmt: skip
+        pair = self._pair_sigma(z, c_spot, distance, readout)
+        if readout == "joint" and self.field_model == "nearest":
+            return pair
+        field = self._field_sigma("z", z, distance)
+        if c_spot is not None:
             field = combine(field, self._transfer_sigma(z, c_spot))
-        pair = np.fmax(field, self._pair_sigma(z, c_spot, distance))
+        pair = np.fmax(field, pair)
         if self.field_model == "nearest":
             return pair
         held = self.crossval_of(self.field_model)["distance_px"].to_numpy()
@@ -878,12 +889,11 @@ class Calibration:
             params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
             corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
             errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
-            if joint is None:
-                fit_part = self._fit_part_z(params, errors, corr, p, np.where(in_range, s, 0.0),
-                                            ref)  # fmt: skip
-            else:
+            if joint is None:  # scaled about each z (noise_scale_by_z)
+                fit_part = self._noise_scale_at(z) * self._fit_part_z(
+                    params, errors, corr, p, np.where(in_range, s, 0.0), ref)  # fmt: skip
+            else:  # its fit covariance already scaled by noise_scale (joint_readout)
                 fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
-            fit_part = self._noise_scale_at(z) * fit_part
             z_err = np.hypot(fit_part, model_part)
         else:
             z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
