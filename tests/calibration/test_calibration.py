@@ -153,6 +153,50 @@ def test_local_models_are_never_extrapolated_beyond_the_imaged_z_span(calibrated
     assert (z_ok == model.axial.valid).all()
 
 
+@pytest.mark.parametrize("field_model", ["nearest", "curves"])
+def test_models_are_never_used_across_a_gap_of_failed_fits(field_model):
+    """Eight particles whose fits failed on the planes from -950 to -750 nm: their local
+    models stop at the gap, and no spot is corrected by a Δx' extrapolated across it (an
+    order-16 polynomial there errs by pixels). Emitters 3 px from each of them, in focus at 0,
+    through ±2 µm: every spot in range is put at its emitter's place (px · 100 nm) within
+    30 nm (measured: 2 nm median, 26 nm at most; one Δx' extrapolated across the gap errs by
+    166 nm)."""
+    traces, _ = make_traces(40, seed=5)
+    z = traces.z_nm
+    gapped = np.arange(8)
+    for name in ("x", "y", "wx", "wy", "rho", "amplitude"):
+        traces.data[name][np.ix_(gapped, (z > -1000.0) & (z < -700.0))] = np.nan
+    cal = calibrate_traces(traces, camera=CAM, shape="rho", field_model=field_model)
+    shift = cal.plane(*(cal.positions[gapped] * 100).T)
+    assert np.all(cal.z_span_nm[gapped, 0] >= -750.0 - shift - 1e-6)
+    place = cal.positions[gapped] + [3.0, 0.0]
+    test, _ = make_traces(gapped.size, z_nm=np.arange(-2000.0, 2000.1, 50.0),
+                          z_f=np.zeros(gapped.size), positions=place, seed=7)  # fmt: skip
+    out = cal.apply(traces_table(test))
+    keep = out["in_range"].to_numpy()
+    assert keep.mean() > 0.5
+    true_x = np.repeat(place[:, 0], test.z_nm.size) * 100.0
+    assert np.max(np.abs(out["x_nm"].to_numpy() - true_x)[keep]) < 30.0
+
+
+def test_spots_far_beyond_the_monotonic_range_are_not_in_range():
+    """ρ is monotonic within about ±1.3 µm of focus here and returns towards 0 beyond, so a
+    spot 2.5-3 µm from focus has the ρ of one inside the range, while its widths are far
+    larger. Emitters at their own places through ±3 µm (truth: the piezo z less the plane):
+    at most a fifth of those beyond 2.5 µm may be claimed in range (measured: 19 %; every one
+    before widths were compared), and none within 1 µm of focus may be lost."""
+    traces, _ = make_traces(40, seed=5)
+    cal = calibrate_traces(traces, camera=CAM, shape="rho", field_model="nearest")
+    place = np.random.default_rng(8).uniform(0, 500, (30, 2))
+    test, _ = make_traces(30, z_nm=np.arange(-3000.0, 3000.1, 50.0), z_f=np.zeros(30),
+                          positions=place, seed=9)  # fmt: skip
+    out = cal.apply(traces_table(test))
+    z_true = np.tile(test.z_nm, 30) - cal.plane(out["x"] * 100, out["y"] * 100)
+    keep = out["in_range"].to_numpy()
+    assert keep[np.abs(z_true) > 2500].mean() <= 0.2
+    assert keep[np.abs(z_true) < 1000].mean() >= 0.99
+
+
 def test_the_shape_grid_spans_what_enough_particles_cover(calibrated):
     from latentz.calibration.widefield import WidefieldModel
 

@@ -80,13 +80,8 @@ def predict(cal: Calibration, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray)
         z, dx, dy, ok = wide(x_px, y_px, s, iterations=cal.options.get("iterations", 0))
         return z, dx, dy, ok
     p = cal.nearest(x_px, y_px)
-    inverse = cal.local.shapes[cal.shape].inverse[p]
-    ok = inverse.contains(s) & inverse.valid & np.isfinite(s)
-    z = np.where(ok, inverse(np.where(ok, s, 0.0)), np.nan)
-    lo, hi = cal.z_span_nm[p].T
-    with np.errstate(invalid="ignore"):
-        ok &= (z >= lo) & (z <= hi)  # never extrapolated, as Calibration.local_z
-    z = np.where(ok, z, np.nan)
+    z = cal.inverse_z(s, p)
+    ok = np.isfinite(z)
     zq = np.where(ok, z, 0.0)
     return z, cal.local.dx[p](zq), cal.local.dy[p](zq), ok
 

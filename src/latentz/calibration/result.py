@@ -54,6 +54,11 @@ SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
 Z_READOUTS = ("joint", "shape")
 _ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
 _PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
+#: A spot whose mean width is more than this many times its particle's curves at its z lies
+#: beyond the particle's monotonic range: there the shape value returns to values inside the
+#: range while the widths keep growing. The quality verdict's χ² (10 % curve scatter, limit
+#: 200) calls such a spot inconsistent too, so single molecules lose nothing more to it.
+BEYOND_WIDTH = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -344,11 +349,17 @@ class Calibration:
 
     @property
     def z_span_nm(self) -> np.ndarray:
-        """(n, 2) lowest and highest tilt-corrected z (nm) each particle was imaged at: the only
-        z over which its local models are known."""
+        """(n, 2) lowest and highest tilt-corrected z (nm) of the planes each particle's local
+        models were fitted to (its measured run about focus, :func:`~latentz.calibration.local.
+        fit_local`): the only z over which they are known. Beyond a gap of failed fits an
+        order-16 polynomial is unconstrained, however far the stack reaches."""
         if "z_span" not in self._cache:
             z = self.local.z_nm
-            self._cache["z_span"] = np.stack([np.nanmin(z, axis=1), np.nanmax(z, axis=1)], axis=1)
+            lo = np.fmax.reduce([np.nanmin(z, axis=1), self.local.dx.domain[:, 0],
+                                 self.local.dy.domain[:, 0]])  # fmt: skip
+            hi = np.fmin.reduce([np.nanmax(z, axis=1), self.local.dx.domain[:, 1],
+                                 self.local.dy.domain[:, 1]])  # fmt: skip
+            self._cache["z_span"] = np.stack([lo, hi], axis=1)
         return self._cache["z_span"]
 
     def _within_span(self, z: np.ndarray) -> np.ndarray:
@@ -357,15 +368,27 @@ class Calibration:
             return (z >= lo) & (z <= hi)
 
     def local_z(self, value: Any, *, shape: str | None = None) -> np.ndarray:
-        """z (nm) of every calibration particle for one shape value (scalar or (n,) array).
+        """z (nm) of every calibration particle for one shape value (scalar or (n,) array);
+        NaN as in :meth:`inverse_z`."""
+        n = len(self.local.z_f)
+        s = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,))
+        return self.inverse_z(s, np.arange(n), shape=shape)
 
-        NaN where the value is outside the particle's monotonic range, or where its inverse
-        polynomial leaves the z span the particle was imaged over (never extrapolated).
+    def inverse_z(self, s: np.ndarray, p: np.ndarray, *, shape: str | None = None) -> np.ndarray:
+        """z (nm) of shape values ``s`` (m,) by particles ``p``' (m,) inverse models z(s).
+
+        NaN where s lies outside the shape range the inverse covers, or where the inverse
+        polynomial leaves the particle's monotonic z range, the planes it was fitted to (an
+        order-16 z(s) overshoots between its data by microns where its slope is steep).
         """
-        model = self.local.shapes[shape or self.shape].inverse
-        s = np.broadcast_to(np.asarray(value, dtype=np.float64), (len(model),))
-        z = model(s)
-        return np.where(model.contains(s) & model.valid & self._within_span(z), z, np.nan)
+        model = self.local.shapes[shape or self.shape]
+        inverse = model.inverse[p]
+        ok = inverse.contains(s) & inverse.valid & np.isfinite(s)
+        z = inverse(np.where(ok, s, 0.0))
+        lo, hi = model.z_range[p].T
+        with np.errstate(invalid="ignore"):
+            ok &= (z >= lo) & (z <= hi)
+        return np.where(ok, z, np.nan)
 
     def local_delta(self, z_nm: Any) -> tuple[np.ndarray, np.ndarray]:
         """Δx'(z), Δy'(z) (pixels) of every calibration particle at z (scalar or (n,) array).
@@ -567,13 +590,8 @@ class Calibration:
         """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
         own) and in_range of shape values ``s`` at the spots' positions."""
         if self.widefield is None:
-            inverse = self.local.shapes[self.shape].inverse[p]
-            in_range = inverse.contains(s) & inverse.valid & np.isfinite(s) & located
-            z = np.where(in_range, inverse(np.where(in_range, s, 0.0)), np.nan)
-            lo, hi = self.z_span_nm[p].T
-            with np.errstate(invalid="ignore"):
-                in_range &= (z >= lo) & (z <= hi)  # the inverse never leaves the imaged span
-            return np.where(in_range, z, np.nan), None, in_range
+            z = np.where(located, self.inverse_z(s, p), np.nan)
+            return z, None, np.isfinite(z)
         # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
         z, dx_w, dy_w, in_range = self.widefield(
             np.where(located, cols["x"], np.nan),
@@ -782,7 +800,9 @@ class Calibration:
         DataFrame
             A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm, in_range and
             cal_particle (index of the calibration particle used). Outside that particle's
-            calibrated range, z_nm and the corrected positions are NaN and in_range is False.
+            calibrated range (its monotonic range, or widths over :data:`BEYOND_WIDTH` times
+            its curves' at the z read: a spot beyond the range whose shape value mimics one
+            inside it), z_nm and the corrected positions are NaN and in_range is False.
         """
         check_columns("spots", spots, SPOT_COLUMNS)
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
@@ -808,6 +828,8 @@ class Calibration:
             s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
+        in_range &= ~self._beyond_range(cols, p, z)
+        z = np.where(in_range, z, np.nan)
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
         out, px = spots.copy(), self.camera.pixel_size_nm
@@ -824,6 +846,19 @@ class Calibration:
             out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p
+        return out
+
+    def _beyond_range(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(n,) spots at z (nm) on particles ``p`` whose mean fitted width (``cols``' wx, wy,
+        px) exceeds :data:`BEYOND_WIDTH` times the particle's curves at z (:meth:`curves_at`):
+        spots past the end of the monotonic range whose shape value mimics one inside it."""
+        found = np.isfinite(z)
+        out = np.zeros(z.size, dtype=bool)
+        if found.any():
+            c = self.curves_at(p[found], z[found])
+            width = np.abs(cols["wx"][found]) + np.abs(cols["wy"][found])
+            with np.errstate(invalid="ignore"):
+                out[found] = width > BEYOND_WIDTH * (np.abs(c["wx"]) + np.abs(c["wy"]))
         return out
 
     def _z_field_error(self, spots: pd.DataFrame, cols: dict, z: np.ndarray,
