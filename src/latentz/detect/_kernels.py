@@ -8,18 +8,21 @@ photoelectrons) and each pixel is converted to photoelectrons, ``(value - offset
 photoelectron copy of a chunk is made. Everything is float32: the band-passed frame only decides
 where maxima are.
 
-Detection of a chunk takes three passes over it, each in parallel (``numba.prange``) over
-(frame, strip of rows) tasks, so that a chunk of one frame still uses every core:
+Detection of a chunk is one streaming pass, `detect_frames`, in parallel (``numba.prange``) over
+(frame, strip of rows) tasks, so that a chunk of one frame still uses every core. Each input row
+is converted and filtered horizontally into a ring of ``2 r + 1`` rows; ahead of it the wide
+background streams from block means (`_wide_row`: ``factor`` rows summed, read a second time
+from cache, and filtered along the block row into a ring of block rows; `_background_row` blurs
+that ring vertically when a band row needs the block row); each band-passed row (the ring
+filtered vertically, minus the background read back bilinearly) goes into a second ring of
+``2 d + 1`` rows, ``d`` the maxima's radius; each row whose ``d`` rows below are ready is tested
+(`_row_maxima`: spans of columns counted first, which vectorises, then the pixels above the floor
+against their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
 
-1. `block_means`: the frame shrunk by block means, blurred (`blur`) into the wide background;
-2. `noise_samples`: the band-passed frame on the strided sample of
-   :func:`latentz.detect.noise_level` only, and `noise_levels` its robust spread;
-3. `detect_strips`: one streaming pass per strip. Each input row is converted and filtered
-   horizontally into a ring of ``2 r + 1`` rows; each band-passed row (vertical filter of that ring
-   minus the bilinearly read background) goes into a second ring of ``2 d + 1`` rows, ``d`` the
-   maxima's radius; each row whose ``d`` rows below are ready is tested against the threshold
-   (a count first, which vectorises: most rows hold nothing) and its pixels above it against
-   their neighbours. Memory is a few rows per task; the band-passed frame is never stored.
+The threshold is not known while the rows pass: the pass writes the band-passed frame at the
+strided pixels of :func:`latentz.detect.noise_level` (`noise_levels` takes their robust spread
+afterwards) and keeps the maxima above a lower floor, from a rough noise level of the task's
+pixels on a sparse grid (`_rough_noise`), unless the noise is given.
 
 The maxima of one wide spot are merged afterwards, on one thread (a few dozen per frame: waking
 the other threads would cost more than the work): `count_higher` and `list_higher` pair each

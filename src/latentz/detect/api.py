@@ -591,7 +591,7 @@ def merge_maxima(
     with another within ``half`` px is a close pair. ``valleys(first, second)`` gives the lowest
     band-passed value on the line between maxima ``first[k]`` and ``second[k]``.
 
-    The kernels take the maxima of each frame ordered by row (as `detect_strips` writes them;
+    The kernels take the maxima of each frame ordered by row (as `detect_frames` writes them;
     others are put in that order here and the flags returned in the given order)."""
     order = np.lexsort((rows, frame))
     in_order = bool(np.all(order == np.arange(len(order))))
