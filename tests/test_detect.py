@@ -24,8 +24,11 @@ from latentz.detect.api import (
 from latentz.fit import render_rois
 
 
-def _spot_frame(points, shape=(64, 64), photons=3000.0, background=20.0, seed=0, widths=1.3):
-    """A noisy frame holding round spots (sd ``widths`` px) at the given (x, y) points."""
+def _spot_frame(
+    points, shape=(64, 64), photons=3000.0, background=20.0, seed=0, widths=1.3, noisy=True
+):
+    """A frame holding round spots (sd ``widths`` px) at the given (x, y) points, with Poisson
+    noise unless not ``noisy``."""
     table = pd.DataFrame(
         {"x": [p[0] for p in points], "y": [p[1] for p in points], "photons": photons,
          "background": 0.0, "wx": widths, "wy": widths, "rho": 0.0}
@@ -41,7 +44,7 @@ def _spot_frame(points, shape=(64, 64), photons=3000.0, background=20.0, seed=0,
         rs = slice(max(r0, 0), min(r0 + 2 * half + 1, shape[0]))
         cs = slice(max(c0, 0), min(c0 + 2 * half + 1, shape[1]))
         expected[rs, cs] += patch[rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
-    return np.random.default_rng(seed).poisson(expected).astype(float)
+    return np.random.default_rng(seed).poisson(expected).astype(float) if noisy else expected
 
 
 def test_band_pass_removes_a_constant_and_a_slope():
@@ -167,6 +170,13 @@ def test_a_floor_above_the_threshold_detects_the_chunk_again(monkeypatch):
     assert len(passes) == 2
     for t, frame in enumerate(frames):
         _assert_frame_matches_the_twin(found, t, frame)
+
+
+def test_noise_free_spots_are_found_at_their_pixels():
+    # no noise: the band-pass's noise and the pass's rough level count as 1 photoelectron
+    points = [(20.2, 30.7), (60.0, 12.4), (90.6, 80.1)]
+    found = detect(_spot_frame(points, shape=(100, 110), noisy=False))
+    assert sorted(zip(found.row, found.col, strict=True)) == [(12, 60), (31, 20), (80, 91)]
 
 
 def test_the_pass_leaves_the_twins_wide_background_for_the_valleys():

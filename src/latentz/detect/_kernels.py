@@ -356,7 +356,8 @@ def detect_frames(
         floor = limits[t]
         if math.isnan(floor):
             rough = _rough_noise(frame, offset, gain, scale, a, b, 4096, mad_to_sigma)
-            floor = np.float32(floor_scale * rough)
+            # a noise-free frame's noise counts as 1 photoelectron (`detect._usable_noise`)
+            floor = np.float32(floor_scale * (rough if rough > 0 else 1.0))
         floors[task] = floor
         col0 = np.empty(w, dtype=np.int64)
         col1 = np.empty(w, dtype=np.int64)
