@@ -512,7 +512,7 @@ def _streamed(
 
 #: The floor of a pass whose noise is unknown, as a fraction of the threshold on a rough noise
 #: level: the pixels' (`_kernels._rough_noise`) times the small Gaussian's gain on white noise
-#: (about 5 % above the band-pass's noise). 150-250 maxima per 2048 x 2048 frame of Poisson
+#: (about 7 % above the band-pass's noise). 150-250 maxima per 2048 x 2048 frame of Poisson
 #: noise lie above it, and the rough level would have to read 1.67x high to miss one.
 _FLOOR_FRACTION = 0.6
 
