@@ -16,8 +16,8 @@ from cache, and filtered along the block row into a ring of block rows; `_backgr
 that ring vertically when a band row needs the block row); each band-passed row (the ring
 filtered vertically, minus the background read back bilinearly) goes into a second ring of
 ``2 d + 1`` rows, ``d`` the maxima's radius; each row whose ``d`` rows below are ready is tested
-(`_row_maxima`: spans of columns counted first, which vectorises, then the pixels above the floor
-against their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
+(`_row_maxima`: the pixels above the floor counted first, which vectorises, then compared with
+their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
 
 The threshold is not known while the rows pass: the pass writes the band-passed frame at the
 strided pixels of :func:`latentz.detect.noise_level` (`noise_levels` takes their robust spread
@@ -281,32 +281,28 @@ def _is_peak(band, i, j, v, radius, h):
     return True
 
 
-#: Columns that `_row_maxima` counts at once (vectorised) before it looks at their pixels.
-_SPAN = 64
-
-
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _row_maxima(band, i, radius, h, row_floor, gain_cols, rows, cols, values, found):
     """Append the maxima of band-passed row ``i`` above ``row_floor * gain_cols[j]`` (`_is_peak`)
     to ``rows, cols, values`` from index ``found`` (as far as they have room); return the new
-    count. Spans of `_SPAN` columns are counted first: most hold nothing."""
+    count. The row's pixels above are counted first, which vectorises: most rows hold none
+    (counting spans of 64 columns instead, so as to skip the empty ones, cost 2 ms more per
+    2048 x 2048 frame)."""
     w = band.shape[1]
     line = band[i % band.shape[0]]
-    for j0 in range(0, w, _SPAN):
-        j1 = min(j0 + _SPAN, w)
-        above = 0
-        for j in range(j0, j1):
-            above += line[j] > row_floor * gain_cols[j]
-        if above == 0:
-            continue
-        for j in range(j0, j1):
-            v = line[j]
-            if v > row_floor * gain_cols[j] and _is_peak(band, i, j, v, radius, h):
-                if found < len(rows):
-                    rows[found] = i
-                    cols[found] = j
-                    values[found] = v
-                found += 1
+    above = 0
+    for j in range(w):
+        above += line[j] > row_floor * gain_cols[j]
+    if above == 0:
+        return found
+    for j in range(w):
+        v = line[j]
+        if v > row_floor * gain_cols[j] and _is_peak(band, i, j, v, radius, h):
+            if found < len(rows):
+                rows[found] = i
+                cols[found] = j
+                values[found] = v
+            found += 1
     return found
 
 
