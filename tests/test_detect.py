@@ -19,12 +19,16 @@ from latentz.detect.api import (
     find_peaks,
     merge_maxima,
     noise_level,
+    roi_corners,
 )
 from latentz.fit import render_rois
 
 
-def _spot_frame(points, shape=(64, 64), photons=3000.0, background=20.0, seed=0, widths=1.3):
-    """A noisy frame holding round spots (sd ``widths`` px) at the given (x, y) points."""
+def _spot_frame(
+    points, shape=(64, 64), photons=3000.0, background=20.0, seed=0, widths=1.3, noisy=True
+):
+    """A frame holding round spots (sd ``widths`` px) at the given (x, y) points, with Poisson
+    noise unless not ``noisy``."""
     table = pd.DataFrame(
         {"x": [p[0] for p in points], "y": [p[1] for p in points], "photons": photons,
          "background": 0.0, "wx": widths, "wy": widths, "rho": 0.0}
@@ -40,7 +44,7 @@ def _spot_frame(points, shape=(64, 64), photons=3000.0, background=20.0, seed=0,
         rs = slice(max(r0, 0), min(r0 + 2 * half + 1, shape[0]))
         cs = slice(max(c0, 0), min(c0 + 2 * half + 1, shape[1]))
         expected[rs, cs] += patch[rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
-    return np.random.default_rng(seed).poisson(expected).astype(float)
+    return np.random.default_rng(seed).poisson(expected).astype(float) if noisy else expected
 
 
 def test_band_pass_removes_a_constant_and_a_slope():
@@ -104,15 +108,16 @@ def test_detection_finds_dim_isolated_emitters():
 
 
 def _assert_frame_matches_the_twin(found, t: int, photons: np.ndarray) -> None:
-    """Frame ``t`` of the kernels' detections against :func:`find_peaks` on its photoelectrons.
+    """Frame ``t`` of the kernels' detections against :func:`find_peaks` on its photoelectrons
+    and the ROIs that :func:`roi_corners` puts around its maxima.
 
     float32 kernels against float64 NumPy: the same maxima, scores to float32 rounding (no
     maximum lies within 1e-3 of the threshold or of a neighbour in these frames)."""
     rows, cols, snr = find_peaks(photons)
+    row0, col0, _ = roi_corners(rows, cols, found.rois.shape[1], photons.shape)
     mine = found.frame == t
-    assert sorted(zip(found.row[mine], found.col[mine], strict=True)) == sorted(
-        zip(rows, cols, strict=True)
-    )
+    got = zip(found.row[mine], found.col[mine], found.row0[mine], found.col0[mine], strict=True)
+    assert sorted(got) == sorted(zip(rows, cols, row0, col0, strict=True))
     order = np.lexsort((cols, rows))
     mine_order = np.lexsort((found.col[mine], found.row[mine]))
     np.testing.assert_allclose(found.snr[mine][mine_order], snr[order], rtol=1e-4)
@@ -146,6 +151,53 @@ def test_kernels_read_adu_frames_as_the_twin_reads_their_photoelectrons():
     np.testing.assert_allclose(found.rois, expected, rtol=1e-12)
     np.testing.assert_allclose(band_noise(adu, camera=cam), band_noise(cam.to_photons(adu)),
                                rtol=1e-4)  # fmt: skip
+
+
+def test_a_floor_above_the_threshold_detects_the_chunk_again(monkeypatch):
+    # the pass keeps maxima above a floor from a rough noise level, then the threshold on the
+    # sampled noise picks them; a floor that lies above the threshold (here forced: 3x the
+    # threshold on the rough level) must send the chunk through a second pass at the threshold
+    from latentz.detect import api
+
+    rng = np.random.default_rng(13)
+    points = list(zip(rng.uniform(3, 297, 30), rng.uniform(3, 257, 30), strict=True))
+    frames = np.stack([_spot_frame(points, shape=(260, 300), seed=s) for s in range(2)])
+    passes = []
+    run = api._pass
+    monkeypatch.setattr(api, "_pass", lambda *args: passes.append(1) or run(*args))
+    monkeypatch.setattr(api, "_FLOOR_FRACTION", 3.0)
+    found = detect_arrays(frames, roi_size=7)
+    assert len(passes) == 2
+    for t, frame in enumerate(frames):
+        _assert_frame_matches_the_twin(found, t, frame)
+
+
+def test_noise_free_spots_are_found_at_their_pixels():
+    # no noise: the band-pass's noise and the pass's rough level count as 1 photoelectron
+    points = [(20.2, 30.7), (60.0, 12.4), (90.6, 80.1)]
+    found = detect(_spot_frame(points, shape=(100, 110), noisy=False))
+    assert sorted(zip(found.row, found.col, strict=True)) == [(12, 60), (31, 20), (80, 91)]
+
+
+def test_the_pass_leaves_the_twins_wide_background_for_the_valleys():
+    # the valleys between maxima are recomputed from the wide background the streaming pass
+    # writes (every block row by one of several row strips): upsampled as the NumPy twin
+    # upsamples its own, it is the small Gaussian minus the twin's band-pass
+    from scipy import ndimage
+
+    from latentz.detect import api
+
+    frames = np.random.default_rng(14).poisson(50.0, (2, 530, 517)).astype(float)
+    frames += np.linspace(0.0, 80.0, 517)  # a slope, so that the background is not flat
+    chunk = api._streamed(frames, 1.5, None, 5.0, 2, None)[0]
+    plan = filter_plan(1.5)
+    for t, frame in enumerate(frames):
+        small = frame
+        for axis in (0, 1):
+            small = ndimage.correlate1d(small, plan.weights, axis, mode="nearest")
+        upsampled = api._upsampled(chunk.background[t].astype(float), frame.shape, plan.factor)
+        # float32 sums of ~100 photoelectrons: 1e-4 relative
+        np.testing.assert_allclose(upsampled, small - band_pass(frame), rtol=1e-4)
 
 
 def test_default_threshold_keeps_false_maxima_per_frame_constant():

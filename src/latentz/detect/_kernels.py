@@ -8,18 +8,21 @@ photoelectrons) and each pixel is converted to photoelectrons, ``(value - offset
 photoelectron copy of a chunk is made. Everything is float32: the band-passed frame only decides
 where maxima are.
 
-Detection of a chunk takes three passes over it, each in parallel (``numba.prange``) over
-(frame, strip of rows) tasks, so that a chunk of one frame still uses every core:
+Detection of a chunk is one streaming pass, `detect_frames`, in parallel (``numba.prange``) over
+(frame, strip of rows) tasks, so that a chunk of one frame still uses every core. Each input row
+is converted and filtered horizontally into a ring of ``2 r + 1`` rows; ahead of it the wide
+background streams from block means (`_wide_row`: ``factor`` rows summed, read a second time
+from cache, and filtered along the block row into a ring of block rows; `_background_row` blurs
+that ring vertically when a band row needs the block row); each band-passed row (the ring
+filtered vertically, minus the background read back bilinearly) goes into a second ring of
+``2 d + 1`` rows, ``d`` the maxima's radius; each row whose ``d`` rows below are ready is tested
+(`_row_maxima`: the pixels above the floor counted first, which vectorises, then compared with
+their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
 
-1. `block_means`: the frame shrunk by block means, blurred (`blur`) into the wide background;
-2. `noise_samples`: the band-passed frame on the strided sample of
-   :func:`latentz.detect.noise_level` only, and `noise_levels` its robust spread;
-3. `detect_strips`: one streaming pass per strip. Each input row is converted and filtered
-   horizontally into a ring of ``2 r + 1`` rows; each band-passed row (vertical filter of that ring
-   minus the bilinearly read background) goes into a second ring of ``2 d + 1`` rows, ``d`` the
-   maxima's radius; each row whose ``d`` rows below are ready is tested against the threshold
-   (a count first, which vectorises: most rows hold nothing) and its pixels above it against
-   their neighbours. Memory is a few rows per task; the band-passed frame is never stored.
+The threshold is not known while the rows pass: the pass writes the band-passed frame at the
+strided pixels of :func:`latentz.detect.noise_level` (`noise_levels` takes their robust spread
+afterwards) and keeps the maxima above a lower floor, from a rough noise level of the task's
+pixels on a sparse grid (`_rough_noise`), unless the noise is given.
 
 The maxima of one wide spot are merged afterwards, on one thread (a few dozen per frame: waking
 the other threads would cost more than the work): `count_higher` and `list_higher` pair each
@@ -77,22 +80,6 @@ def _photon_at(frame, offset, gain, scale, i, j):
     return (np.float32(frame[i, j]) - offset) * scale[i, j]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def block_means(frames, offset, gain, scale, factor, out):
-    """``out[t, R, C]``: mean photoelectrons of ``frames[t]`` over block ``R, C`` of ``factor`` x
-    ``factor`` pixels (partial blocks at the far edges average the pixels they hold)."""
-    n, h, w = frames.shape
-    hs = out.shape[1]
-    for task in numba.prange(n * hs):
-        t = task // hs
-        big = task % hs
-        acc = np.zeros(w, dtype=np.float32)
-        r1 = min(big * factor + factor, h)
-        for i in range(big * factor, r1):
-            _add_photon_row(frames[t, i], offset, gain, scale, i, acc)
-        _block_row_means(acc, factor, r1 - big * factor, out[t, big])
-
-
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _block_row_means(acc, factor, rows, out):
     """``out[C]``: the sums of ``rows`` rows in ``acc`` over blocks of ``factor`` columns, as
@@ -145,37 +132,18 @@ def _pad_edges(pad, r, w):
         pad[r + w + j] = pad[r + w - 1]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def blur(images, weights, out):
-    """Separable filter of each image with symmetric ``weights`` (2 r + 1), nearest-edge mode."""
-    n, h, w = images.shape
-    r = (len(weights) - 1) // 2
-    for t in numba.prange(n):
-        tmp = np.empty((h, w), dtype=np.float32)
-        pad = np.empty(w + 2 * r, dtype=np.float32)
-        for i in range(h):
-            for j in range(w):
-                pad[r + j] = images[t, i, j]
-            _pad_edges(pad, r, w)
-            _row_filter(pad, weights, tmp[i])
-        for i in range(h):
-            line = out[t, i]
-            for j in range(w):
-                line[j] = 0.0
-            for k in range(-r, r + 1):
-                wk = weights[k + r]
-                src = tmp[_clip(i + k, h)]
-                for j in range(w):
-                    line[j] += wk * src[j]
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _block_position(i, factor, n_small):
+    """Pixel centre ``i`` in block units, ``(i + 0.5) / factor - 0.5``, clamped to the first and
+    last of ``n_small`` blocks (bilinear sampling of the block means)."""
+    return min(max((i + 0.5) / factor - 0.5, 0.0), n_small - 1.0)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _interp_axis(n, factor, n_small, index0, index1, frac):
-    """Bilinear sampling of a block-mean axis: pixel centre ``i`` sits at ``(i + 0.5) / f - 0.5``
-    in block units, clamped to the first and last block."""
+    """Bilinear sampling of a block-mean axis at pixels ``0 .. n - 1`` (`_block_position`)."""
     for i in range(n):
-        pos = (i + 0.5) / factor - 0.5
-        pos = min(max(pos, 0.0), n_small - 1.0)
+        pos = _block_position(i, factor, n_small)
         i0 = int(math.floor(pos))
         index0[i] = i0
         index1[i] = min(i0 + 1, n_small - 1)
@@ -194,8 +162,8 @@ def _upsample_row(small, index0, index1, frac, out):
 def _background_at(background, factor, i, j):
     """The wide background (one frame's blurred block means) at pixel ``(i, j)``, bilinearly."""
     hs, ws = background.shape
-    pr = min(max((i + 0.5) / factor - 0.5, 0.0), hs - 1.0)
-    pc = min(max((j + 0.5) / factor - 0.5, 0.0), ws - 1.0)
+    pr = _block_position(i, factor, hs)
+    pc = _block_position(j, factor, ws)
     r0, c0 = int(math.floor(pr)), int(math.floor(pc))
     r1, c1 = min(r0 + 1, hs - 1), min(c0 + 1, ws - 1)
     fy, fx = pr - r0, pc - c0
@@ -204,31 +172,45 @@ def _background_at(background, factor, i, j):
     return top + fy * (bottom - top)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def noise_samples(frames, offset, gain, scale, background, factor, weights, stride, out):
-    """``out[t, a, b]``: the band-passed frame ``t`` at pixel ``(a stride, b stride)``, computed
-    there only (vertical filter of the row's neighbourhood, then horizontal at the samples)."""
-    n, h, w = frames.shape
-    nh, nw = out.shape[1], out.shape[2]
-    r = (len(weights) - 1) // 2
-    for task in numba.prange(n * nh):
-        t = task // nh
-        a = task % nh
-        i = a * stride
-        acc = np.zeros(w, dtype=np.float32)
-        line = np.empty(w, dtype=np.float32)
-        for k in range(2 * r + 1):
-            row = _clip(i + k - r, h)
-            _photon_row(frames[t, row], offset, gain, scale, row, line, 0)
-            wk = weights[k]
-            for j in range(w):
-                acc[j] += wk * line[j]
-        for b in range(nw):
-            j = b * stride
-            v = np.float32(0.0)
-            for k in range(2 * r + 1):
-                v += weights[k] * acc[_clip(j + k - r, w)]
-            out[t, a, b] = v - _background_at(background[t], factor, i, j)
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _wide_row(frame, offset, gain, scale, factor, wide, big, acc, pad, out):
+    """``out``: block row ``big`` of ``frame``'s block means (``factor`` x ``factor`` px, in
+    photoelectrons; partial blocks at the far edges average the pixels they hold), filtered
+    along the row by ``wide`` (nearest edge). ``acc`` (W) and ``pad`` (len(out) + len(wide) - 1)
+    are work rows."""
+    h = frame.shape[0]
+    rw = (len(wide) - 1) // 2
+    ws = out.shape[0]
+    acc[:] = 0.0
+    r1 = min(big * factor + factor, h)
+    for i in range(big * factor, r1):
+        _add_photon_row(frame[i], offset, gain, scale, i, acc)
+    _block_row_means(acc, factor, r1 - big * factor, pad[rw : rw + ws])
+    _pad_edges(pad, rw, ws)
+    _row_filter(pad, wide, out)
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _background_row(
+    frame, offset, gain, scale, factor, wide, big, made, ring, acc, pad, out,
+):  # fmt: skip
+    """``out``: block row ``big`` of the wide background (the block means blurred by ``wide``
+    both ways, nearest edge). ``ring[k % len(ring)]`` holds the row-filtered block rows ``k <
+    made``; the rows up to ``big + r`` are added to it first. Returns the new ``made``: block
+    rows are asked for in increasing order, each made once."""
+    n = ring.shape[0]
+    rw = (len(wide) - 1) // 2
+    hs = (frame.shape[0] + factor - 1) // factor
+    while made <= min(big + rw, hs - 1):
+        _wide_row(frame, offset, gain, scale, factor, wide, made, acc, pad, ring[made % n])
+        made += 1
+    out[:] = 0.0
+    for k in range(-rw, rw + 1):
+        wk = wide[k + rw]
+        src = ring[_clip(big + k, hs) % n]
+        for j in range(out.shape[0]):
+            out[j] += wk * src[j]
+    return made
 
 
 @numba.njit(parallel=True, cache=True)
@@ -238,6 +220,33 @@ def noise_levels(samples, mad_to_sigma, out):
         values = samples[t].ravel().astype(np.float64)
         centre = np.median(values)
         out[t] = mad_to_sigma * np.median(np.abs(values - centre))
+
+
+#: Pixels apart of the second differences of `_rough_noise`.
+_ROUGH_GAP = 8
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _rough_noise(frame, offset, gain, scale, a, b, n_points, mad_to_sigma):
+    """A rough noise level of the pixels of rows ``a:b`` of ``frame`` (photoelectrons), from a
+    grid of about ``n_points`` pixels: the robust spread (``mad_to_sigma`` x MAD) of the second
+    differences ``p(i, j) - (p(i, j - g) + p(i, j + g)) / 2`` (``g`` = `_ROUGH_GAP` px: a
+    smooth background cancels), over sqrt(1.5)."""
+    w = frame.shape[1]
+    step = max(1, int(math.sqrt((b - a) * w / n_points)))
+    n_rows = max(1, (b - a) // step)
+    n_cols = max(1, w // step)
+    diffs = np.empty(n_rows * n_cols, dtype=np.float32)
+    for p in range(n_rows):
+        i = min(a + step // 2 + p * step, b - 1)
+        for q in range(n_cols):
+            j = min(step // 2 + q * step, w - 1)
+            left = _photon_at(frame, offset, gain, scale, i, _clip(j - _ROUGH_GAP, w))
+            right = _photon_at(frame, offset, gain, scale, i, _clip(j + _ROUGH_GAP, w))
+            centre = _photon_at(frame, offset, gain, scale, i, j)
+            diffs[p * n_cols + q] = centre - 0.5 * (left + right)
+    middle = np.median(diffs)
+    return mad_to_sigma * np.median(np.abs(diffs - middle)) / math.sqrt(1.5)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
@@ -272,30 +281,80 @@ def _is_peak(band, i, j, v, radius, h):
     return True
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def detect_strips(
-    frames, offset, gain, scale, background, factor, weights, taps, limits, gain_rows,
-    gain_cols, radius, n_strips, rows, cols, values, counts,
-):  # fmt: skip
-    """Local maxima of the band-passed frames in one streaming pass per (frame, strip) task.
-    ``taps`` are ``weights`` as a tuple (`_row_filter_taps`).
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _row_maxima(band, i, radius, h, row_floor, gain_cols, rows, cols, values, found):
+    """Append the maxima of band-passed row ``i`` above ``row_floor * gain_cols[j]`` (`_is_peak`)
+    to ``rows, cols, values`` from index ``found`` (as far as they have room); return the new
+    count. The row's pixels above are counted first, which vectorises: most rows hold none
+    (counting spans of 64 columns instead, so as to skip the empty ones, cost 2 ms more per
+    2048 x 2048 frame)."""
+    w = band.shape[1]
+    line = band[i % band.shape[0]]
+    above = 0
+    for j in range(w):
+        above += line[j] > row_floor * gain_cols[j]
+    if above == 0:
+        return found
+    for j in range(w):
+        v = line[j]
+        if v > row_floor * gain_cols[j] and _is_peak(band, i, j, v, radius, h):
+            if found < len(rows):
+                rows[found] = i
+                cols[found] = j
+                values[found] = v
+            found += 1
+    return found
 
-    A maximum is a pixel above ``limits[t] * gain_rows[i] * gain_cols[j]`` (the noise grows at
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _filtered_row(frame, offset, gain, scale, row, r, taps, pad, out):
+    """``out``: frame row ``row`` (clipped to the frame) in photoelectrons, filtered along the
+    row by ``taps`` (2 r + 1, nearest edge)."""
+    h, w = frame.shape
+    row = _clip(row, h)
+    _photon_row(frame[row], offset, gain, scale, row, pad, r)
+    _pad_edges(pad, r, w)
+    _row_filter_taps(pad, taps, out)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def detect_frames(
+    frames, offset, gain, scale, factor, weights, taps, wide, limits, floor_scale, mad_to_sigma,
+    gain_rows, gain_cols, radius, n_strips, stride, rows, cols, values, counts, floors, samples,
+    background,
+):  # fmt: skip
+    """Band-pass, noise sample and local maxima of ``frames`` in one streaming pass per (frame,
+    strip of rows) task. ``taps`` are ``weights`` as a tuple (`_row_filter_taps`), ``wide`` the
+    wide Gaussian on block means of ``factor`` px (`latentz.detect.filter_plan`).
+
+    A maximum is a pixel above ``floors[k] * gain_rows[i] * gain_cols[j]`` (the noise grows at
     the edges, `latentz.detect.edge_noise_gain`) that is the largest within ``radius`` px
-    (Chebyshev; ties all kept). Task ``k`` writes its first ``rows.shape[1]`` maxima to row ``k``
-    of ``rows, cols, values`` and its full count to ``counts[k]``.
+    (Chebyshev; ties all kept). The floor of task ``k`` (frame ``t``) is ``limits[t]``, or where
+    that is NaN ``floor_scale`` times the `_rough_noise` of its rows' pixels; task ``k`` writes
+    it to ``floors[k]``, its first ``rows.shape[1]`` maxima to row ``k`` of ``rows, cols,
+    values`` and their full count to ``counts[k]``; it also writes its rows' share of
+    ``samples[t]`` (the band-passed frame at every ``stride``-th pixel both ways) and of
+    ``background[t]`` (the wide background on the block grid, which `valleys_in_frames`
+    reads).
     """
     n, h, w = frames.shape
     hs, ws = background.shape[1], background.shape[2]
     r = (len(weights) - 1) // 2
+    rw = (len(wide) - 1) // 2
     ring_n = 2 * r + 1
     band_n = 2 * radius + 1
-    cap = rows.shape[1]
     for task in numba.prange(n * n_strips):
         t = task // n_strips
         s = task % n_strips
         a = s * h // n_strips
         b = (s + 1) * h // n_strips
+        frame = frames[t]
+        floor = limits[t]
+        if math.isnan(floor):
+            rough = _rough_noise(frame, offset, gain, scale, a, b, 4096, mad_to_sigma)
+            # a noise-free frame's noise counts as 1 photoelectron (`detect._usable_noise`)
+            floor = np.float32(floor_scale * (rough if rough > 0 else 1.0))
+        floors[task] = floor
         col0 = np.empty(w, dtype=np.int64)
         col1 = np.empty(w, dtype=np.int64)
         colf = np.empty(w, dtype=np.float32)
@@ -304,51 +363,43 @@ def detect_strips(
         band = np.empty((band_n, w), dtype=np.float32)
         pad = np.empty(w + 2 * r, dtype=np.float32)
         upsampled = np.empty((2, w), dtype=np.float32)
+        wide_ring = np.empty((2 * rw + 1, ws), dtype=np.float32)
+        wide_pad = np.empty(ws + 2 * rw, dtype=np.float32)
+        block = np.empty(ws, dtype=np.float32)
+        acc = np.empty(w, dtype=np.float32)
         first = max(a - radius, 0)
         for v in range(first - r, first + r):  # the ring's rows above the first band row
-            row = _clip(v, h)
-            _photon_row(frames[t, row], offset, gain, scale, row, pad, r)
-            _pad_edges(pad, r, w)
-            _row_filter_taps(pad, taps, ring[(v + ring_n) % ring_n])
+            _filtered_row(frame, offset, gain, scale, v, r, taps, pad, ring[(v + ring_n) % ring_n])
+        made = max(int(math.floor(_block_position(first, factor, hs))) - rw, 0)
         ready = first  # next band-passed row to compute
         last = -2  # no block row read yet
-        limit = limits[t]
         found = 0
         for i in range(a, b):
             while ready <= min(i + radius, h - 1):
-                row = _clip(ready + r, h)
-                _photon_row(frames[t, row], offset, gain, scale, row, pad, r)
-                _pad_edges(pad, r, w)
-                _row_filter_taps(pad, taps, ring[(ready + r) % ring_n])
-                pos = min(max((ready + 0.5) / factor - 0.5, 0.0), hs - 1.0)
+                _filtered_row(frame, offset, gain, scale, ready + r, r, taps, pad,
+                              ring[(ready + r) % ring_n])  # fmt: skip
+                pos = _block_position(ready, factor, hs)
                 r0 = int(math.floor(pos))
                 if r0 != last:  # background rows, upsampled along the row once per block row;
                     # block row r0 + 1 is the next block row's first: kept in slot (r0 + 1) % 2
-                    if r0 != last + 1:
-                        _upsample_row(background[t, r0], col0, col1, colf, upsampled[r0 % 2])
-                    below = background[t, min(r0 + 1, hs - 1)]
-                    _upsample_row(below, col0, col1, colf, upsampled[(r0 + 1) % 2])
+                    for big in range(r0 if r0 != last + 1 else r0 + 1, r0 + 2):
+                        big = min(big, hs - 1)
+                        made = _background_row(frame, offset, gain, scale, factor, wide, big,
+                                               made, wide_ring, acc, wide_pad, block)  # fmt: skip
+                        if a <= big * factor < b:  # each block row written by one task
+                            background[t, big] = block
+                        _upsample_row(block, col0, col1, colf, upsampled[big % 2])
                     last = r0
-                _band_row(
-                    ring, weights, ready, r, upsampled[r0 % 2], upsampled[(r0 + 1) % 2], pos - r0,
-                    band[ready % band_n],
-                )  # fmt: skip
+                line = band[ready % band_n]
+                _band_row(ring, weights, ready, r, upsampled[r0 % 2],
+                          upsampled[min(r0 + 1, hs - 1) % 2], pos - r0, line)  # fmt: skip
+                if a <= ready < b and ready % stride == 0:
+                    for q in range(samples.shape[2]):
+                        samples[t, ready // stride, q] = line[q * stride]
                 ready += 1
-            line = band[i % band_n]
-            row_limit = limit * gain_rows[i]
-            above = 0
-            for j in range(w):
-                above += line[j] > row_limit * gain_cols[j]
-            if above == 0:
-                continue
-            for j in range(w):
-                v = line[j]
-                if v > row_limit * gain_cols[j] and _is_peak(band, i, j, v, radius, h):
-                    if found < cap:
-                        rows[task, found] = i
-                        cols[task, found] = j
-                        values[task, found] = v
-                    found += 1
+            row_floor = floor * gain_rows[i]
+            found = _row_maxima(band, i, radius, h, row_floor, gain_cols, rows[task],
+                                cols[task], values[task], found)  # fmt: skip
         counts[task] = found
 
 

@@ -148,11 +148,16 @@ def band_pass(frame: Any, *, sigma: float = 1.5) -> np.ndarray:
     shrunk = _block_means(image, plan.factor)
     for axis in (0, 1):
         shrunk = ndimage.correlate1d(shrunk, plan.wide_weights, axis, mode="nearest")
-    r0, r1, fy = _bilinear_axis(image.shape[0], plan.factor, shrunk.shape[0])
-    c0, c1, fx = _bilinear_axis(image.shape[1], plan.factor, shrunk.shape[1])
+    return small - _upsampled(shrunk, image.shape, plan.factor)
+
+
+def _upsampled(shrunk: np.ndarray, shape: tuple[int, int], factor: int) -> np.ndarray:
+    """Values on the grid of ``factor`` px blocks read bilinearly at each pixel of ``shape``."""
+    r0, r1, fy = _bilinear_axis(shape[0], factor, shrunk.shape[0])
+    c0, c1, fx = _bilinear_axis(shape[1], factor, shrunk.shape[1])
     top = shrunk[r0][:, c0] + fx * (shrunk[r0][:, c1] - shrunk[r0][:, c0])
     bottom = shrunk[r1][:, c0] + fx * (shrunk[r1][:, c1] - shrunk[r1][:, c0])
-    return small - (top + fy[:, None] * (bottom - top))
+    return top + fy[:, None] * (bottom - top)
 
 
 def noise_stride(shape: tuple[int, ...]) -> int:
@@ -403,19 +408,16 @@ def detect_arrays(
     sigma = check_positive("sigma", sigma)
     min_distance = check_int("min_distance", min_distance, minimum=1)
     with one_thread_if(stack.size < _SMALL_PIXELS):
-        chunk = _prepared(stack, sigma, camera)
-        noise = _noise_levels(chunk) if noise is None else noise
-        frame, rows, cols, snr, close = _maxima(
-            chunk, threshold, min_distance, roi_size // 2, noise
-        )
+        chunk, noise, maxima = _streamed(stack, sigma, camera, threshold, min_distance, noise)
+        frame, rows, cols, snr, close = _merged(chunk, noise, maxima, roi_size // 2)
     row0, col0, edge = roi_corners(rows, cols, roi_size, (height, width))
     rois = cut_photons(chunk.frames, frame, row0, col0, roi_size, camera)
     return Detections(frame, rows, cols, snr, row0, col0, edge, close, rois)
 
 
 class _Chunk(NamedTuple):
-    """Frames as stored, their camera terms and wide background: the kernels' first arguments
-    (`_kernels.detect_strips`)."""
+    """Frames as stored, their camera terms and wide background: the arguments with which
+    `_kernels.valleys_in_frames` recomputes the band-pass at a few pixels."""
 
     frames: np.ndarray
     offset: np.float32
@@ -432,24 +434,22 @@ class _Chunk(NamedTuple):
                 self.weights)  # fmt: skip
 
 
-def _prepared(stack: np.ndarray, sigma: float, camera: Camera | None) -> _Chunk:
-    """The chunk's camera terms and its wide background (block means, blurred) for the
-    band-pass of scale ``sigma`` px (`filter_plan`)."""
-    plan = filter_plan(sigma)
-    stack = np.ascontiguousarray(stack)
-    n, height, width = stack.shape
-    offset, gain, scale = np.float32(0.0), np.float32(1.0), np.empty((0, 0), np.float32)
-    if camera is not None:
-        offset, gain = np.float32(camera.offset), np.float32(camera.gain)
-        flat = camera.flatfield_region((height, width))
-        if flat is not None:
-            scale = (camera.gain / flat).astype(np.float32)
-    shrunk = np.empty((n, -(-height // plan.factor), -(-width // plan.factor)), np.float32)
-    _k.block_means(stack, offset, gain, scale, plan.factor, shrunk)
-    background = np.empty_like(shrunk)
-    _k.blur(shrunk, plan.wide_weights.astype(np.float32), background)
-    weights = plan.weights.astype(np.float32)
-    return _Chunk(stack, offset, gain, scale, background, plan.factor, weights, sigma)
+class _Maxima(NamedTuple):
+    """Local maxima of a chunk's band-passed frames (each frame's in row order)."""
+
+    frame: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    values: np.ndarray  # float64, photoelectrons
+
+
+def _camera_terms(shape: tuple[int, int], camera: Camera | None) -> tuple:
+    """(offset, gain, scale) of `_Chunk` for frames of ``shape`` from ``camera``."""
+    if camera is None:
+        return np.float32(0.0), np.float32(1.0), np.empty((0, 0), np.float32)
+    flat = camera.flatfield_region(shape)
+    scale = np.empty((0, 0), np.float32) if flat is None else (camera.gain / flat)
+    return np.float32(camera.offset), np.float32(camera.gain), scale.astype(np.float32)
 
 
 def _strips(n_frames: int, height: int) -> int:
@@ -460,53 +460,111 @@ def _strips(n_frames: int, height: int) -> int:
 
 def band_noise(frames: Any, *, sigma: float = 1.5, camera: Camera | None = None) -> np.ndarray:
     """Noise of each band-passed frame (t, H, W) in photoelectrons, as `detect_arrays`
-    estimates it (numba): pass it back there to detect later frames of the same movie without
-    estimating it again (a median over a small frame costs more than detecting it)."""
+    estimates it (one detection pass, numba): pass it back there to detect later frames of the
+    same movie, or parts of them, with the same noise."""
     stack, _ = check_frames(frames, 3)
     sigma = check_positive("sigma", sigma)
+    threshold = default_threshold(*stack.shape[1:])
     with one_thread_if(stack.size < _SMALL_PIXELS):
-        return _noise_levels(_prepared(stack, sigma, camera))
+        return _streamed(stack, sigma, camera, threshold, 1, None)[1]
 
 
-def _noise_levels(chunk: _Chunk) -> np.ndarray:
-    """`noise_level` of each band-passed frame, from the band-pass at its sample pixels only."""
-    n, height, width = chunk.frames.shape
+def _streamed(
+    stack: np.ndarray,
+    sigma: float,
+    camera: Camera | None,
+    threshold: float,
+    min_distance: int,
+    noise: np.ndarray | None,
+) -> tuple[_Chunk, np.ndarray, _Maxima]:
+    """The chunk, the noise of each frame (photoelectrons; estimated unless given) and the local
+    maxima above ``threshold`` times it, from one streaming pass (`_kernels.detect_frames`).
+
+    Unless the noise is given, the pass keeps the maxima above a floor, `_FLOOR_FRACTION` of the
+    threshold on a rough noise level from a sparse grid of pixels, while it samples the
+    band-passed frame at the pixels of `noise_level`; the threshold on that sample's noise then
+    picks the same maxima as a pass at that threshold would. Where a floor lies above it (a
+    rough level more than 1 / `_FLOOR_FRACTION` times high), the chunk is detected again at
+    the threshold."""
+    stack = np.ascontiguousarray(stack)
+    n, height, width = stack.shape
+    plan = filter_plan(sigma)
+    small = (-(-height // plan.factor), -(-width // plan.factor))
+    chunk = _Chunk(stack, *_camera_terms((height, width), camera),
+                   np.empty((n, *small), np.float32), plan.factor,
+                   plan.weights.astype(np.float32), sigma)  # fmt: skip
     stride = noise_stride((height, width))
     samples = np.empty((n, -(-height // stride), -(-width // stride)), np.float32)
-    _k.noise_samples(*chunk.args, stride, samples)
-    noise = np.empty(n)
-    _k.noise_levels(samples, _MAD_TO_SIGMA, noise)
-    return _usable_noise(noise)
+    known = np.full(n, np.nan) if noise is None else threshold * noise
+    floors, maxima = _pass(chunk, known, threshold, min_distance, samples)
+    if noise is None:
+        noise = np.empty(n)
+        _k.noise_levels(samples, _MAD_TO_SIGMA, noise)
+        noise = _usable_noise(noise)
+    limits = (threshold * noise).astype(np.float32)
+    if np.any(floors > np.repeat(limits, len(floors) // n)):
+        floors, maxima = _pass(chunk, limits, threshold, min_distance, samples)
+    gain_rows, gain_cols = _edge_gains((height, width), sigma)
+    bounds = limits[maxima.frame] * gain_rows[maxima.rows] * gain_cols[maxima.cols]
+    above = maxima.values > bounds
+    return chunk, noise, _Maxima(*(column[above] for column in maxima))
 
 
-def _maxima(
-    chunk: _Chunk, threshold: float, min_distance: int, half: int, noise: np.ndarray
-) -> tuple[np.ndarray, ...]:
-    """(frame, row, col, snr, close_pair) of the merged maxima of every frame (numba)."""
+#: The floor of a pass whose noise is unknown, as a fraction of the threshold on a rough noise
+#: level: the pixels' (`_kernels._rough_noise`) times the small Gaussian's gain on white noise
+#: (about 7 % above the band-pass's noise). 150-250 maxima per 2048 x 2048 frame of Poisson
+#: noise lie above it, and the rough level would have to read 1.67x high to miss one.
+_FLOOR_FRACTION = 0.6
+
+
+def _pass(
+    chunk: _Chunk, limits: np.ndarray, threshold: float, min_distance: int, samples: np.ndarray
+) -> tuple[np.ndarray, _Maxima]:
+    """`_kernels.detect_frames` over the chunk with the band-pass floors ``limits`` per frame
+    (NaN: estimated on each strip): the floors of the (frame, strip) tasks and their maxima.
+    Fills ``samples`` and ``chunk.background``."""
     n, height, width = chunk.frames.shape
     strips = _strips(n, height)
-    limits = (threshold * noise).astype(np.float32)
-    weights = filter_plan(chunk.sigma).weights
-    gain_rows = edge_noise_gain(height, weights).astype(np.float32)
-    gain_cols = edge_noise_gain(width, weights).astype(np.float32)
-    taps = tuple(chunk.weights)  # np.float32 each
+    gain_rows, gain_cols = _edge_gains((height, width), chunk.sigma)
+    plan = filter_plan(chunk.sigma)
+    wide = plan.wide_weights.astype(np.float32)
+    # white noise filtered by the small Gaussian: the pixels' level times the root sum of
+    # squares of its 2D weights, the 1D weights' sum of squares (separable)
+    floor_scale = _FLOOR_FRACTION * threshold * np.sum(plan.weights**2)
     counts = np.zeros(n * strips, np.int64)
+    floors = np.empty(n * strips, np.float32)
     # room for a maximum per 32 x 32 px (a fuller task is rerun with room for its count)
     cap = max(256, height * width // (strips * _PIXELS_PER_MAXIMUM))
     while True:
         rows = np.empty((n * strips, cap), np.int64)
         cols = np.empty((n * strips, cap), np.int64)
         values = np.empty((n * strips, cap), np.float32)
-        _k.detect_strips(
-            *chunk.args, taps, limits, gain_rows, gain_cols, min_distance, strips, rows, cols,
-            values, counts,
+        _k.detect_frames(
+            chunk.frames, chunk.offset, chunk.gain, chunk.scale, chunk.factor, chunk.weights,
+            tuple(chunk.weights), wide, limits.astype(np.float32), floor_scale,
+            _MAD_TO_SIGMA, gain_rows, gain_cols, min_distance, strips,
+            noise_stride((height, width)), rows, cols, values, counts, floors, samples,
+            chunk.background,
         )  # fmt: skip
         if counts.max(initial=0) <= cap:
             break
         cap = int(counts.max())
     taken = np.arange(cap)[None, :] < counts[:, None]
-    rows, cols, values = rows[taken], cols[taken], values[taken].astype(np.float64)
     frame = np.repeat(np.arange(n * strips) // strips, counts)
+    return floors, _Maxima(frame, rows[taken], cols[taken], values[taken].astype(np.float64))
+
+
+def _edge_gains(shape: tuple[int, int], sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """`edge_noise_gain` of the rows and of the columns of frames of ``shape`` (float32)."""
+    weights = filter_plan(sigma).weights
+    return tuple(edge_noise_gain(n, weights).astype(np.float32) for n in shape)
+
+
+def _merged(
+    chunk: _Chunk, noise: np.ndarray, maxima: _Maxima, half: int
+) -> tuple[np.ndarray, ...]:
+    """(frame, row, col, snr, close_pair) of the maxima of one spot merged (`merge_maxima`)."""
+    frame, rows, cols, values = maxima
 
     def valleys(first: np.ndarray, second: np.ndarray) -> np.ndarray:
         out = np.empty(len(first))
@@ -533,7 +591,7 @@ def merge_maxima(
     with another within ``half`` px is a close pair. ``valleys(first, second)`` gives the lowest
     band-passed value on the line between maxima ``first[k]`` and ``second[k]``.
 
-    The kernels take the maxima of each frame ordered by row (as `detect_strips` writes them;
+    The kernels take the maxima of each frame ordered by row (as `detect_frames` writes them;
     others are put in that order here and the flags returned in the given order)."""
     order = np.lexsort((rows, frame))
     in_order = bool(np.all(order == np.arange(len(order))))
