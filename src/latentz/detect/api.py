@@ -560,9 +560,7 @@ def _edge_gains(shape: tuple[int, int], sigma: float) -> tuple[np.ndarray, np.nd
     return tuple(edge_noise_gain(n, weights).astype(np.float32) for n in shape)
 
 
-def _merged(
-    chunk: _Chunk, noise: np.ndarray, maxima: _Maxima, half: int
-) -> tuple[np.ndarray, ...]:
+def _merged(chunk: _Chunk, noise: np.ndarray, maxima: _Maxima, half: int) -> tuple[np.ndarray, ...]:
     """(frame, row, col, snr, close_pair) of the maxima of one spot merged (`merge_maxima`)."""
     frame, rows, cols, values = maxima
 
