@@ -154,10 +154,34 @@ def test_noise_by_z_follows_the_scatter_in_windows_of_enough_images():
     rng = np.random.default_rng(4)
     z = rng.uniform(-600.0, 600.0, 2000)
     truth = 1.0 - 0.7 * (z / 600.0) ** 2
-    grid, scale = noise_by_z(z, (truth * rng.normal(0.0, 1.0, z.size)) ** 2)
+    free = np.ones(z.size)
+    grid, scale = noise_by_z(z, (truth * rng.normal(0.0, 1.0, z.size)) ** 2, free)
     assert np.all(np.diff(grid) > 0) and scale.max() <= 1.0
     inside = np.abs(grid) <= 550  # a window of 125 images spans about 75 nm
     expected = 1.0 - 0.7 * (grid[inside] / 600.0) ** 2
     # each window's scale is known to 1/sqrt(2 × 125) = 6 %: 4x that, over 1,900 windows
     np.testing.assert_allclose(scale[inside], expected, rtol=0.25)
-    assert noise_by_z(z[:23], np.ones(23))[0].size == 0  # under two windows of 12
+    assert noise_by_z(z[:23], np.ones(23), free[:23])[0].size == 0  # under two windows of 12
+    # residuals that keep a third of their images' noise (an inverse of 16 parameters through
+    # 24 images) hold 8 degrees of freedom: not one window's worth, so no curve
+    assert noise_by_z(z[:24], np.ones(24), np.full(24, 1 / 3))[0].size == 0
+    # the same residuals weighted by what they keep: r² = scatter² / (1 − h) on average
+    grid, scale = noise_by_z(z, (truth * rng.normal(0.0, 1.0, z.size)) ** 2 * 0.5, free * 0.5)
+    np.testing.assert_allclose(
+        scale[np.abs(grid) <= 550], 1.0 - 0.7 * (grid[np.abs(grid) <= 550] / 600.0) ** 2, rtol=0.3
+    )
+
+
+def test_a_curve_through_barely_more_images_than_parameters_says_nothing():
+    """18 images through a 17-parameter curve leave one residual degree of freedom, whose
+    square is often far below its mean: residuals at 0.3 of what the noise leaves are no
+    evidence that the images scatter less than their fit errors, so r stays 1 (such a one-bead
+    calibration had r = 0.37, and its z errors were reported 3x too small)."""
+    predicted = np.full((1, 18), 5.0)
+    left = 5.0 * np.sqrt(1 / 18)  # the RMS residual that noise of 5 nm leaves, on average
+    residual = np.full((1, 18), 0.3 * left)
+    assert measured_noise(residual, predicted, n_params=17, n_fitted=np.array([18])) == 1.0
+    # the same residuals with many images per parameter are evidence: r = 0.3
+    many = np.full((40, 180), 0.3 * 5.0 * np.sqrt(163 / 180))
+    scale = measured_noise(many, np.full((40, 180), 5.0), n_params=17)
+    assert scale == pytest.approx(0.3, rel=1e-9)

@@ -47,8 +47,8 @@ __all__ = [
     "measured_noise", "noise_by_z",
 ]  # fmt: skip
 
-#: Calibration images in each window of :func:`noise_by_z` at least: its scale is known there to
-#: 1/√(2·12) = 20 %.
+#: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
+#: there to 1/√(2·12) = 20 %.
 NOISE_WINDOW = 12
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
@@ -98,9 +98,7 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
     difference clipped at zero): otherwise they are counted twice and grow with distance.
     """
-    return field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm).sigma(
-        z_nm, distance_px
-    )
+    return field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm).sigma(z_nm, distance_px)
 
 
 class FieldLine(NamedTuple):
@@ -284,7 +282,9 @@ def measured_noise(
     ``f / (f − n_params)`` for its ``f`` fitted images: a least-squares curve's residuals are
     that much smaller than the images' scatter, on average over the images it was fitted to,
     however few of them count), where r is below 1 by more than twice its sampling error
-    (``1/sqrt(2 m)`` for ``m`` images in all), else 1. Each image counts once: a
+    (``1/sqrt(2 ν)``, ν the curves' residual degrees of freedom, the sum of their
+    ``f − n_params``), else 1. A curve through no more images than it has parameters follows
+    them exactly and does not count. Each image counts once: a
     ratio of RMS values would be ruled by the few planes where the curve is flat and the
     predicted error huge. The curve's lack of fit, stage jitter and flicker only add scatter, so
     r < 1 means the pixels are less noisy than the camera model says (a gain too low, frames
@@ -292,38 +292,49 @@ def measured_noise(
     """
     use = np.isfinite(residual_nm) & np.isfinite(predicted_nm) & (predicted_nm > 0)
     count = use.sum(axis=1)
-    m = int(count.sum())
+    fitted = count if n_fitted is None else np.asarray(n_fitted)
+    free = np.maximum(fitted - n_params, 0)
+    counts = free > 0
+    m = int(count[counts].sum())
     if m == 0:
         return 1.0
-    fitted = count if n_fitted is None else np.asarray(n_fitted)
-    dof = fitted / np.maximum(fitted - n_params, 1)
+    nu = float(np.sum(free))
     normalised2 = np.where(use, residual_nm / np.where(use, predicted_nm, 1.0), 0.0) ** 2
-    ratio = float(np.sqrt(np.sum(dof * np.sum(normalised2, axis=1)) / m))
-    return ratio if ratio < 1 - 2 / np.sqrt(2 * m) else 1.0
+    inflate = fitted[counts] / free[counts]
+    ratio = float(np.sqrt(np.sum(inflate * np.sum(normalised2[counts], axis=1)) / m))
+    return ratio if ratio < 1 - 2 / np.sqrt(2 * nu) else 1.0
 
 
 def noise_by_z(
-    z_nm: np.ndarray, scatter2: np.ndarray, *, window: int = NOISE_WINDOW, spans: int = 16
+    z_nm: np.ndarray,
+    scatter2: np.ndarray,
+    free: np.ndarray,
+    *,
+    window: int = NOISE_WINDOW,
+    spans: int = 16,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`measured_noise` as a function of z: how much less the calibration images scatter
     than their fit errors say, about each z.
 
     ``z_nm`` (m,): each image's z; ``scatter2`` (m,): its squared residual about its curve over
-    its predicted error squared and over ``1 − h``, h its leverage in the curve's fit
-    (:meth:`~latentz.calibration.polymodel.PolyModel.leverage`): the square of the held-out
-    residual's share of the image's own noise, whose mean is r² at that z. Images sorted by z
-    are averaged in running windows of ``max(window, m // spans)`` consecutive ones (each r to
-    about ``1/sqrt(2 · window)``, and about a ``spans``-th of the range of z where images are
-    many). Returns each window's mean z (nm, ascending, distinct) and sqrt of its mean,
-    at most 1; empty where fewer than two windows' worth of images are finite.
+    its predicted error squared; ``free`` (m,): ``1 − h``, h its leverage in the curve's fit
+    (:meth:`~latentz.calibration.polymodel.PolyModel.leverage`), the share of the image's noise
+    its residual keeps. About a z, r² is the window's summed ``scatter2`` over its summed
+    ``free``. Images sorted by z are taken in running windows of as many consecutive images as
+    hold ``window`` residual degrees of freedom on average (each r then known to about
+    ``1/sqrt(2 · window)``), or a ``spans``-th of the images where they are many. Returns each
+    window's mean z (nm, ascending, distinct) and its r, at most 1; empty where the images
+    hold fewer than two windows.
     """
-    use = np.isfinite(z_nm) & np.isfinite(scatter2)
-    z, q = np.asarray(z_nm)[use], np.asarray(scatter2)[use]
-    size = max(window, z.size // spans)
+    use = np.isfinite(z_nm) & np.isfinite(scatter2) & (np.asarray(free) > 0)
+    z, q, f = (np.asarray(v)[use] for v in (z_nm, scatter2, free))
+    if z.size == 0:
+        return np.empty(0), np.empty(0)
+    size = max(int(np.ceil(window / np.mean(f))), z.size // spans)
     if z.size < 2 * size:
         return np.empty(0), np.empty(0)
     order = np.argsort(z, kind="stable")
-    sums = [np.convolve(v[order], np.ones(size), mode="valid") / size for v in (z, q)]
-    centre, index = np.unique(sums[0], return_inverse=True)
-    mean2 = np.bincount(index, weights=sums[1]) / np.bincount(index)
+    zs, qs, fs = (np.convolve(v[order], np.ones(size), mode="valid") for v in (z, q, f))
+    centre, index = np.unique(zs / size, return_inverse=True)
+    mean2 = np.bincount(index, weights=qs / fs) / np.bincount(index)
     return centre, np.minimum(np.sqrt(mean2), 1.0)

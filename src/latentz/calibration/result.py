@@ -510,8 +510,10 @@ class Calibration:
             if self.noise_scale < 1:
                 z, residual, predicted, leverage = self._calibration_scatter()
                 with np.errstate(invalid="ignore", divide="ignore"):
-                    scatter2 = (residual / predicted) ** 2 / (1 - leverage)
-                self._cache["noise_scale_by_z"] = noise_by_z(z.ravel(), scatter2.ravel())
+                    scatter2 = (residual / predicted) ** 2
+                self._cache["noise_scale_by_z"] = noise_by_z(
+                    z.ravel(), scatter2.ravel(), (1 - leverage).ravel()
+                )
         return self._cache["noise_scale_by_z"]
 
     def _noise_scale_at(self, z: np.ndarray) -> np.ndarray:
