@@ -1,11 +1,13 @@
 """Detection: band-pass, noise level, local maxima, ROI cutting, edge and close-pair flags."""
 
+import numba
 import numpy as np
 import pandas as pd
 import pytest
 from movie_truth import emitter_movie, match
 
 from latentz.camera import Camera
+from latentz.detect._kernels import line_pixel
 from latentz.detect.api import (
     DEFAULT_THRESHOLD,
     band_noise,
@@ -226,11 +228,23 @@ def test_wide_spots_on_large_frames_give_one_detection_each():
     assert false <= 3
 
 
+@numba.njit(cache=True)
+def valleys_in_band(band, frame, rows, cols, first, second, out):
+    """``out[k]``: the least value of stored band-passed frames ``band`` (t, H, W) on the line
+    between maxima ``first[k]`` and ``second[k]``, as the kernels' valleys."""
+    for k in range(len(first)):
+        p, q = first[k], second[k]
+        steps = max(abs(rows[q] - rows[p]), abs(cols[q] - cols[p]))
+        low = np.inf
+        for m in range(steps + 1):
+            i, j = line_pixel(rows[p], cols[p], rows[q], cols[q], m)
+            low = min(low, band[frame[p], i, j])
+        out[k] = low
+
+
 def test_merging_does_not_depend_on_the_order_of_the_maxima():
     # the kernels take each frame's maxima in row order (the CPU kernels write them so, the GPU
     # in any order): wide spots on noise, whose ripples are merged, in row and in shuffled order
-    from latentz.detect._kernels import valleys_in_band
-
     rng = np.random.default_rng(21)
     points = list(zip(rng.uniform(5, 250, 60), rng.uniform(5, 250, 60), strict=True))
     frames = [_spot_frame(points, (256, 256), 3000.0, 20.0, s, widths=2.8) for s in range(2)]

@@ -75,7 +75,8 @@ _line_pixel = cuda.jit(device=True)(_detect_kernels.line_pixel.py_func)
 @cuda.jit
 def _valleys(band, frame, rows, cols, first, second, out):
     """``out[k]``: the least band-passed value (as float32, like the CPU's stored band) on the
-    line of pixels between maxima ``first[k]`` and ``second[k]``: `valleys_in_band`."""
+    line of pixels between maxima ``first[k]`` and ``second[k]``: `valleys_in_frames` on the
+    stored band."""
     k = cuda.grid(1)
     if k >= out.shape[0]:
         return

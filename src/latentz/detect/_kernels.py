@@ -524,16 +524,3 @@ def merge_and_pair(starts, rows, cols, values, noise, offsets, valleys, dip, hal
                     if abs(rows[q] - rows[p]) <= half and abs(cols[q] - cols[p]) <= half:
                         close[p] = True
                         break
-
-
-@numba.njit(cache=True)
-def valleys_in_band(band, frame, rows, cols, first, second, out):
-    """`valleys_in_frames` on stored band-passed frames ``band`` (t, H, W)."""
-    for k in range(len(first)):
-        p, q = first[k], second[k]
-        steps = max(abs(rows[q] - rows[p]), abs(cols[q] - cols[p]))
-        low = np.inf
-        for m in range(steps + 1):
-            i, j = line_pixel(rows[p], cols[p], rows[q], cols[q], m)
-            low = min(low, band[frame[p], i, j])
-        out[k] = low
