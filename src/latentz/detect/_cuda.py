@@ -35,6 +35,7 @@ from latentz.detect import _kernels as _detect_kernels
 from latentz.detect.api import (
     _MAD_TO_SIGMA,
     Detections,
+    _camera_terms,
     check_frames,
     check_noise,
     default_threshold,
@@ -57,16 +58,15 @@ _BATCH_BYTES = 128 * 2**20
 
 
 @cuda.jit
-def _to_photons(raw, offset, gain, flat, out):
-    """``out = (raw - offset) * gain / flat`` of a (t, H, W) stack; ``flat`` (H, W), or (1, 1)
-    holding 1 for a uniform camera."""
+def _to_photons(raw, offset, gain, scale, out):
+    """``out = (raw - offset) * gain`` of a (t, H, W) stack, or times ``scale[i, j]`` instead of
+    the gain where ``scale`` (H, W) holds gain / flatfield (larger than the (1, 1) stand-in of a
+    uniform camera), as the CPU kernels convert."""
     t, i, j = cuda.grid(3)
     if t >= out.shape[0] or i >= out.shape[1] or j >= out.shape[2]:
         return
-    value = (raw[t, i, j] - offset) * gain
-    if flat.shape[0] > 1:
-        value /= flat[i, j]
-    out[t, i, j] = value
+    factor = scale[i, j] if scale.shape[0] > 1 else gain
+    out[t, i, j] = (raw[t, i, j] - offset) * factor
 
 
 _line_pixel = cuda.jit(device=True)(_detect_kernels.line_pixel.py_func)
@@ -244,15 +244,6 @@ def _find_peaks(d_filtered: Any, limit: np.ndarray, sigma: float, reach: int) ->
         capacity = found
 
 
-def _camera_terms(camera: Camera | None, shape: tuple[int, int]) -> tuple[float, float, Any]:
-    """(offset ADU, gain e-/ADU, device flatfield or a (1, 1) one) for `_to_photons`."""
-    if camera is None:
-        return 0.0, 1.0, cuda.to_device(np.ones((1, 1)))
-    flat = camera.flatfield_region(shape)
-    flat = np.ones((1, 1)) if flat is None else np.asarray(flat, np.float64)
-    return float(camera.offset), float(camera.gain), cuda.to_device(flat)
-
-
 def _device_valleys(d_band: Any, t: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> Any:
     """`merge_maxima`'s ``valleys`` for maxima ``(t, rows, cols)`` of the device band."""
     d_t, d_rows, d_cols = (cuda.to_device(np.ascontiguousarray(a)) for a in (t, rows, cols))
@@ -292,7 +283,8 @@ def detect_arrays_cuda(
     sigma = check_positive("sigma", sigma)
     reach = check_int("min_distance", min_distance, minimum=1)
     noise_known = check_noise(noise, n_frames)
-    offset, gain, d_flat = _camera_terms(camera, (height, width))
+    offset, gain, scale = _camera_terms((height, width), camera)
+    d_scale = cuda.to_device(scale if scale.size else np.ones((1, 1), np.float32))
     batch = batch_size(n_frames, _BATCH_BYTES // (8 * height * width))
     shape = (batch, height, width)
     pinned, d_raw = buffer_pair("frames", shape, stack.dtype)
@@ -304,7 +296,7 @@ def detect_arrays_cuda(
         d_raw[:m].copy_to_device(pinned[:m])
         d_batch = photons[:m]
         grid, block = _grid(d_batch.shape)
-        _to_photons[grid, block](d_raw[:m], offset, gain, d_flat, d_batch)
+        _to_photons[grid, block](d_raw[:m], offset, gain, d_scale, d_batch)
         filtered = _band_pass(d_batch, sigma, tuple(w[:m] for w in work))
         noise = _noise(filtered) if noise_known is None else noise_known[first : first + m]
         peaks = _find_peaks(filtered, threshold * noise, sigma, reach)
