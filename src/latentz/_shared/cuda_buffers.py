@@ -19,23 +19,29 @@ __all__ = ["buffer_pair", "batch_size", "device_buffer"]
 _local = threading.local()
 
 
-def buffer_pair(role: str, shape: int | tuple[int, ...], dtype: Any) -> tuple[np.ndarray, Any]:
-    """(pinned host array, device array) of ``shape`` and ``dtype`` for ``role`` in this thread."""
-    cache = _local.__dict__.setdefault("pairs", {})
+def _kept(store: str, role: str, shape: int | tuple[int, ...], dtype: Any, make: Any) -> Any:
+    """This thread's buffer for ``role`` in ``store``, made by ``make()`` when it has no buffer
+    of ``shape`` and ``dtype`` yet."""
+    cache = _local.__dict__.setdefault(store, {})
     key = (tuple(np.atleast_1d(shape)), np.dtype(dtype))
     if role not in cache or cache[role][0] != key:
-        host = cuda.pinned_array(shape, dtype)
-        cache[role] = (key, (host, cuda.device_array_like(host)))
+        cache[role] = (key, make())
     return cache[role][1]
+
+
+def buffer_pair(role: str, shape: int | tuple[int, ...], dtype: Any) -> tuple[np.ndarray, Any]:
+    """(pinned host array, device array) of ``shape`` and ``dtype`` for ``role`` in this thread."""
+
+    def make() -> tuple[np.ndarray, Any]:
+        host = cuda.pinned_array(shape, dtype)
+        return host, cuda.device_array_like(host)
+
+    return _kept("pairs", role, shape, dtype, make)
 
 
 def device_buffer(role: str, shape: int | tuple[int, ...], dtype: Any) -> Any:
     """A device array of ``shape`` and ``dtype`` for ``role`` in this thread (no host twin)."""
-    cache = _local.__dict__.setdefault("device", {})
-    key = (tuple(np.atleast_1d(shape)), np.dtype(dtype))
-    if role not in cache or cache[role][0] != key:
-        cache[role] = (key, cuda.device_array(shape, dtype))
-    return cache[role][1]
+    return _kept("device", role, shape, dtype, lambda: cuda.device_array(shape, dtype))
 
 
 def batch_size(n: int, capacity: int) -> int:
