@@ -603,14 +603,13 @@ class Calibration:
         )
         return z, {"x": dx_w, "y": dy_w}, in_range & located
 
-    def _dimming_shift(
-        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
-        ref: np.ndarray, of: Callable[..., np.ndarray] | None = None,
-    ) -> np.ndarray:  # fmt: skip
-        """How much brighter-than-the-spot calibration images shift the spots' shape values
-        (:func:`~latentz.calibration.dimming.shape_shift`; ``of(amplitude, wx, wy, rho)``, if
-        given, in place of the shape value), from particle ``p``'s refits at the spots' first
-        z; 0 where that is unknown.
+    def _dimming_terms(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray
+    ) -> tuple[Callable[[str], np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+        """What the brightness corrections of spots of fitted ``amplitude`` and ``background``
+        on particles ``p`` at ``z`` read: particle ``p``'s traces at z (``trace_at(name)``),
+        the spots' background ratio c, the particle's own c there, and the c the correction
+        starts from.
 
         Where the calibration particles' brightness follows their size (their heights were
         taken off, :mod:`latentz.calibration.heights`), spots within the calibration's own range
@@ -619,17 +618,13 @@ class Calibration:
         starts there, and its start moves back to the particle's own ratio c as the spot's c
         goes as far again (in log c) beyond the edge, so that dim emitters get the whole shift
         from their particle's own fit (:mod:`~latentz.calibration.dimming` notes)."""
-        from latentz.calibration.dimming import dimmest, shape_shift
+        from latentz.calibration.dimming import dimmest
 
         readnoise = self.camera.readnoise
         at = row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
             return interp_rows(self.local.z_nm, self.traces[name], p, z, at)
-
-        def shape_of(a, wx, wy, rho):
-            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
-                               amplitude_ref=ref)  # fmt: skip
 
         c_spot = background_ratio(background, amplitude, readnoise)
         c_own = background_ratio(trace_at("background"), trace_at("amplitude"), readnoise)
@@ -644,7 +639,36 @@ class Calibration:
             # the start fades from the edge back to the particle's own c as far again beyond it
             with np.errstate(invalid="ignore", divide="ignore"):
                 c_from = np.clip(edge**2 / c_spot, c_own, edge)
-        shift = shape_shift(of or shape_of, trace_at, c_spot, c_own, c_from=c_from)
+        return trace_at, c_spot, c_own, c_from
+
+    def _dimming_shift(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
+        ref: np.ndarray, of: Callable[..., np.ndarray] | None = None,
+    ) -> np.ndarray:  # fmt: skip
+        """How much brighter-than-the-spot calibration images shift the spots' shape values
+        (:func:`~latentz.calibration.dimming.shape_shift`; ``of(amplitude, wx, wy, rho)``, if
+        given, in place of the shape value), from particle ``p``'s refits at the spots' z
+        (:meth:`_dimming_terms`); 0 where that is unknown."""
+        from latentz.calibration.dimming import shape_shift
+
+        def shape_of(a, wx, wy, rho):
+            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
+                               amplitude_ref=ref)  # fmt: skip
+
+        terms = self._dimming_terms(amplitude, background, p, z)
+        shift = shape_shift(of or shape_of, *terms)
+        return np.where(np.isfinite(shift), shift, 0.0)
+
+    def _position_shift(
+        self, axis: str, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray,
+        z: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """How much brighter-than-the-spot calibration images shift the spots' fitted ``axis``
+        position (px, :func:`~latentz.calibration.dimming.position_shift`), from particle
+        ``p``'s refits at the spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
+        from latentz.calibration.dimming import position_shift
+
+        shift = position_shift(axis, *self._dimming_terms(amplitude, background, p, z))
         return np.where(np.isfinite(shift), shift, 0.0)
 
     def _transfer_sigma(self, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
@@ -835,8 +859,13 @@ class Calibration:
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
         out, px = spots.copy(), self.camera.pixel_size_nm
+        dimmed = "background" in spots.columns and "dim0_dx" in self.traces.data
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
+            if dimmed:  # the spot's own brightness moves its fitted centre (coma)
+                shift = shift + self._position_shift(
+                    axis, cols["amplitude"], spots["background"].to_numpy(float), p, z
+                )
             err = self._lateral_error(axis, spots, p, z, in_range, at, z_err, distance)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
