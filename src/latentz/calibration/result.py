@@ -31,6 +31,7 @@ from latentz.calibration.errors import (
     fit_sigma_s,
     measured_noise,
     noise_by_z,
+    through_z,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
@@ -980,9 +981,12 @@ class Calibration:
         distance: np.ndarray,
     ) -> np.ndarray:
         """σ of the corrected ``axis`` position (nm): the spot's own, the particle's model
-        error and lack of fit, σ_z through the correction's slope, and the field model's."""
+        error and lack of fit, σ_z through the particle's correction
+        (:func:`~latentz.calibration.errors.through_z` over its span), and the field model's."""
         px = self.camera.pixel_size_nm
-        slope = self._error_model(axis)[2][p](np.where(in_range, z, 0.0))
+        model = self.local.dx if axis == "x" else self.local.dy
+        z_in = np.where(in_range, z, 0.0)
+        from_z = through_z(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in spots:
             own = spots[f"{axis}_err"].to_numpy(float)
@@ -990,7 +994,7 @@ class Calibration:
             own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-        return combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
+        return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
 
 
 def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
