@@ -660,17 +660,17 @@ class Calibration:
         shift = shape_shift(of or shape_of, *terms)
         return np.where(np.isfinite(shift), shift, 0.0)
 
-    def _position_shift(
-        self, axis: str, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray,
-        z: np.ndarray,
-    ) -> np.ndarray:  # fmt: skip
-        """How much brighter-than-the-spot calibration images shift the spots' fitted ``axis``
-        position (px, :func:`~latentz.calibration.dimming.position_shift`), from particle
-        ``p``'s refits at the spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
+    def _position_shifts(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """How much brighter-than-the-spot calibration images shift the spots' fitted x and y
+        (px, :func:`~latentz.calibration.dimming.position_shift`), from particle ``p``'s
+        refits at the spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
         from latentz.calibration.dimming import position_shift
 
-        shift = position_shift(axis, *self._dimming_terms(amplitude, background, p, z))
-        return np.where(np.isfinite(shift), shift, 0.0)
+        terms = self._dimming_terms(amplitude, background, p, z)
+        shifts = {axis: position_shift(axis, *terms) for axis in ("x", "y")}
+        return {axis: np.where(np.isfinite(v), v, 0.0) for axis, v in shifts.items()}
 
     def _transfer_sigma(self, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
         """1σ (nm) of the dimming correction carried from the nearest particle to spots at
@@ -860,13 +860,14 @@ class Calibration:
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
         out, px = spots.copy(), self.camera.pixel_size_nm
-        dimmed = "background" in spots.columns and "dim0_dx" in self.traces.data
+        dimmed = None  # the spot's own brightness moves its fitted centre (coma)
+        if "background" in spots.columns and "dim0_dx" in self.traces.data:
+            background = spots["background"].to_numpy(float)
+            dimmed = self._position_shifts(cols["amplitude"], background, p, z)
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
-            if dimmed:  # the spot's own brightness moves its fitted centre (coma)
-                shift = shift + self._position_shift(
-                    axis, cols["amplitude"], spots["background"].to_numpy(float), p, z
-                )
+            if dimmed is not None:
+                shift = shift + dimmed[axis]
             err = self._lateral_error(axis, spots, p, z, in_range, at, z_err, distance)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
