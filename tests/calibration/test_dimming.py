@@ -15,6 +15,7 @@ from latentz.calibration.dimming import (
     background_ratio,
     dim_fits,
     dimmest,
+    position_shift,
     shape_shift,
 )
 from latentz.calibration.shape import shape_value
@@ -105,6 +106,50 @@ def test_the_shift_starts_where_asked(psf, bright_traces):
     assert shift[0] == pytest.approx(want, rel=0.05)
     assert abs(want) > 0.01
     assert shift[1] == 0.0  # brighter than where it starts: no shift
+
+
+@pytest.fixture(scope="module")
+def comatic():
+    """A water-immersion (NA 1.0) point emitter with 30 / −15 nm RMS of coma at five depths,
+    its place 0.3 px right of and 0.2 px above its 15 px patch's centre pixel: (x, y) = (7.3,
+    6.8) in the fit's ROI coordinates."""
+    from latentz.validation import AberrationFields, Microscope
+    from latentz.validation.datasets import render_patches
+    from latentz.validation.fields import MODES
+
+    microscope = Microscope(na=1.0, n_medium=1.333, pixel_size_nm=130.0)
+    fields = AberrationFields.polynomial(
+        (64, 64), degree=1, pixel_size_nm=130.0, mean_nm={"coma_x": 30.0, "coma_y": -15.0},
+        std_nm=dict.fromkeys(MODES, 0.0),
+    )  # fmt: skip
+    z = np.array([-600.0, -300.0, 0.0, 300.0, 600.0])
+    return render_patches(microscope, fields, 32.3, 31.8, z, 15), np.array([7.3, 6.8])
+
+
+@pytest.mark.parametrize("photons", [3000.0, 800.0])
+def test_position_shift_moves_a_dim_comatic_emitter_to_where_a_bright_one_is_read(comatic, photons):
+    """With coma, a dim emitter's fitted centre lies elsewhere than a bright one's (the far
+    wing weighs more against the background). The calibration's Δx'(z) holds the bright
+    particle's error about its place; less the position shift, the dim emitter's error about
+    its own place is the same."""
+    psf, place = comatic
+    bright = 2e5 * psf + 10.0
+    fit = fit_arrays(bright, device="cpu")
+    traces = {
+        **dim_fits(bright, fit.params, method="mle", device="cpu"),
+        "amplitude": fit.params[:, 2],
+        "background": fit.params[:, 3],
+    }
+    dim = fit_arrays(photons * psf + 10.0, readnoise=READNOISE, device="cpu").params
+    c_spot = background_ratio(dim[:, 3], dim[:, 2], READNOISE)
+    c_own = fit.params[:, 3] / fit.params[:, 2]  # the bright fit has no read noise
+    for j, axis in enumerate("xy"):
+        bright_error = fit.params[:, j] - place[j]  # px: what Δx'(z) holds
+        dim_error = dim[:, j] - place[j]
+        shift = position_shift(axis, traces.__getitem__, c_spot, c_own)
+        # 0.01 px = 1.3 nm, against dim-minus-bright differences up to 0.26 px (34 nm)
+        assert np.abs(dim_error - shift - bright_error) == pytest.approx(0.0, abs=0.01), axis
+        assert np.abs(dim_error - bright_error).max() > 0.1, axis
 
 
 def test_dimmest_is_the_quantile_of_the_particles_at_each_depth():

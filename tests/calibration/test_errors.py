@@ -72,3 +72,30 @@ def test_lateral_errors_keep_the_whole_floor_and_are_not_extrapolated_below_the_
     z_sigma = field_sigma(table.rename(columns={"err_x_nm": "err_z_nm"}), "nearest", "z",
                           np.zeros(1), np.zeros(1), bin_nm=2000.0)  # fmt: skip
     assert z_sigma[0] < 0.8 * sigma[0]  # in z, half the floor and the line down to d = 0
+
+
+def _bent_shift(z_nm: np.ndarray) -> np.ndarray:
+    """A lateral correction Δx'(z) (px) that bends over ±1.5 µm."""
+    return 0.3 * np.sin(z_nm / 500.0) + 0.1 * (z_nm / 1000.0) ** 2
+
+
+@pytest.mark.parametrize(
+    ("z_nm", "sigma_z_nm"), [(0.0, 20.0), (300.0, 100.0), (0.0, 800.0), (600.0, 3000.0)]
+)
+def test_the_z_error_reaches_the_lateral_error_through_the_curve_within_its_span(z_nm, sigma_z_nm):
+    """σ of Δx'(z') − Δx'(z) for z' normal about z, held within the calibrated span (a spot in
+    range lies there): truth by 4·10⁵ draws of z' through the curve itself. Where σ_z spans
+    the curve, the slope times σ_z overstates it (weak astigmatism gives σ_z of microns)."""
+    from latentz.calibration.errors import through_z
+    from latentz.calibration.polymodel import PolyModel
+
+    grid = np.linspace(-1500.0, 1500.0, 61)
+    model = PolyModel.from_estimate(grid, _bent_shift(grid), order=14)
+    span = np.array([[-1500.0, 1500.0]])
+    draws = np.clip(np.random.default_rng(0).normal(z_nm, sigma_z_nm, 400_000), *span[0])
+    truth = np.sqrt(np.mean((_bent_shift(draws) - _bent_shift(np.array(z_nm))) ** 2))
+    got = through_z(model, np.array([z_nm]), np.array([sigma_z_nm]), span)[0]
+    assert got == pytest.approx(truth, rel=0.02)
+    if sigma_z_nm >= 800.0:
+        slope = abs(model.derivative()(np.array([z_nm]))[0])
+        assert slope * sigma_z_nm > 2 * truth

@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from latentz.calibration.dimming import DIM_COLUMNS, background_ratio, shape_shift
+from latentz.calibration.dimming import SHAPE_DIM_COLUMNS, background_ratio, shape_shift
 from latentz.calibration.readout import SHAPE_PARAMS, joint_z, shape_covariance
 from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value
@@ -105,7 +105,7 @@ def dim_held_out(
     c_spot = np.full(i.size, float(ratio))
     c_own = background_ratio(own("background"), own("amplitude"), readnoise)
     c_near = background_ratio(neighbour("background"), neighbour("amplitude"), readnoise)
-    refits = all(name in traces.data for name in DIM_COLUMNS)
+    refits = all(name in traces.data for name in SHAPE_DIM_COLUMNS)
 
     def seen(value: np.ndarray, owner_of: Callable) -> np.ndarray:
         """``value`` of the held-out image at c_spot, less the partner's correction to it."""
@@ -157,7 +157,7 @@ def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray
     ``sigma_nm`` (n_levels, n_bins). Empty where there are no refits."""
     from latentz.calibration.dimming import LEVELS
 
-    if not all(name in cal.traces.data for name in DIM_COLUMNS):
+    if not all(name in cal.traces.data for name in SHAPE_DIM_COLUMNS):
         return np.zeros(0), np.zeros(0), np.zeros((0, 0))
     z = cal.local.z_nm
     bright = _judged(cal, dim_held_out(cal, ratio=0.0), 1)  # below every particle's own c
@@ -212,7 +212,7 @@ def pair_table(cal: Calibration, readout: str = "shape") -> pd.DataFrame:
     columns :func:`~latentz.calibration.errors.field_sigma` reads."""
     from latentz.calibration.dimming import LEVELS
 
-    refits = all(name in cal.traces.data for name in DIM_COLUMNS)
+    refits = all(name in cal.traces.data for name in SHAPE_DIM_COLUMNS)
     n_z = cal.local.z_nm.shape[1]
     frames = []
     for rank in PAIR_RANKS:

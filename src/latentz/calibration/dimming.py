@@ -1,4 +1,4 @@
-"""The shape a dimmer emitter shows: the photon-dependent bias of the Gaussian fit.
+"""The shape and place a dimmer emitter shows: the photon-dependent bias of the Gaussian fit.
 
 A Gaussian fitted to a PSF that is not a Gaussian converges to the Gaussian nearest the PSF *under
 the fit's weights* ``1 / (mu + b + readnoise²)``. On a bright calibration particle the weights
@@ -36,6 +36,14 @@ correction models, and every spot is corrected from its particle's own c: on the
 microscope's beads of one size, starting at the edge had cost `curves` 0.5 nm of z (20.6 →
 21.1 nm RMS, full size, test emitters of 2·10⁴ and 2·10⁵ photons).
 
+The same refits hold the position's bias. A PSF that is not symmetric about its centre (coma)
+puts more light in one wing; where the wings weigh more, the fitted centre moves towards that
+wing, by 0.1–0.26 px (13–34 nm) between 2·10⁵ and 800–3000 photons for 30 nm RMS of coma at
+NA 1.0 (``tests/calibration/test_dimming.py``). The calibration's Δx'(z), Δy'(z) hold the
+bright particles' centres, so each refit's position less the calibration's own fit
+(``dim{k}_dx``, ``dim{k}_dy``) is interpolated in log c as the shape value is
+(:func:`position_shift`) and taken off the spot's position with Δx', Δy'.
+
 What it cannot see: a calibration bead is not a point emitter (issue 12, the field and bead
 part), and at very low counts the fit's own small-sample bias.
 """
@@ -48,8 +56,8 @@ import numpy as np
 import pandas as pd
 
 __all__ = [
-    "LEVELS", "DIM_COLUMNS", "EDGE_QUANTILE", "background_ratio", "dim_fits", "dimmest",
-    "shape_shift",
+    "LEVELS", "DIM_COLUMNS", "SHAPE_DIM_COLUMNS", "EDGE_QUANTILE", "background_ratio", "dim_fits",
+    "dimmest", "level_shift", "position_shift", "shape_shift",
 ]  # fmt: skip
 
 #: Background-to-peak ratios c = (b + readnoise²) / A at which the calibration ROIs are refitted:
@@ -61,10 +69,13 @@ _FITTED = ("amplitude", "wx", "wy", "rho")
 #: ratios c at each depth (:func:`dimmest`); where brightness follows particle size, spots
 #: within it are not corrected (module notes).
 EDGE_QUANTILE = 0.95
-#: Trace names of the refits: ``dim{k}_{amplitude, wx, wy, rho, background}`` for level k.
+#: Trace names of the refits: ``dim{k}_{amplitude, wx, wy, rho, background}`` for level k, and
+#: ``dim{k}_dx``, ``dim{k}_dy``, the refit's position less the calibration's own fit's (px).
 DIM_COLUMNS = tuple(
-    f"dim{k}_{name}" for k in range(len(LEVELS)) for name in (*_FITTED, "background")
+    f"dim{k}_{name}" for k in range(len(LEVELS)) for name in (*_FITTED, "background", "dx", "dy")
 )
+#: The refits the shape's correction reads (files older than ``dim{k}_dx`` hold only these).
+SHAPE_DIM_COLUMNS = tuple(name for name in DIM_COLUMNS if not name.endswith(("_dx", "_dy")))
 
 
 def dim_fits(
@@ -88,6 +99,9 @@ def dim_fits(
         for name in (*_FITTED, "background"):
             value = fit.params[:, PARAMS.index(name)]
             out[f"dim{k}_{name}"] = np.where(usable, value, np.nan)
+        for axis in ("x", "y"):
+            shift = fit.params[:, PARAMS.index(axis)] - params[:, PARAMS.index(axis)]
+            out[f"dim{k}_d{axis}"] = np.where(usable, shift, np.nan)
     return out
 
 
@@ -120,14 +134,7 @@ def shape_shift(
     c_from: np.ndarray | None = None,
 ) -> np.ndarray:
     """Bias (n,) of the shape value of spots of background ratio ``c_spot`` against the
-    calibration's own fit (ratio ``c_own``): ``s(c_spot) − s(c_from)``, with s(c) linear in
-    log c between the calibration's own fit and the refits above ``c_own`` (the last one's
-    beyond them; NaN where a refit is missing). ``c_from`` (default ``c_own``; never below it)
-    is where the correction starts: 0 where ``c_spot ≤ c_from``. A refit's own c is measured as
-    a spot's: its fitted background over its fitted amplitude (the refit has no read noise).
-    Both differ from the level: the fitted background of the bright image also holds the PSF's
-    far wings, which are removed with it, and the Gaussian's amplitude changes with the
-    background.
+    calibration's own fit (ratio ``c_own``): ``s(c_spot) − s(c_from)`` (:func:`level_shift`).
 
     ``traces_at(name)`` gives a trace at each spot's particle and plane ((n,); name one of
     :data:`DIM_COLUMNS`, or "amplitude", "wx", "wy", "rho" for the calibration's own fit), and
@@ -135,6 +142,43 @@ def shape_shift(
     """
     own = shape_of(*(traces_at(name) for name in _FITTED))
     dim = [shape_of(*(traces_at(f"dim{k}_{name}") for name in _FITTED)) for k in range(len(LEVELS))]
+    return level_shift(own, dim, traces_at, c_spot, c_own, c_from)
+
+
+def position_shift(
+    axis: str,
+    traces_at: Callable[[str], np.ndarray],
+    c_spot: np.ndarray,
+    c_own: np.ndarray,
+    c_from: np.ndarray | None = None,
+) -> np.ndarray:
+    """Bias (n, px) of the fitted ``axis`` ("x" or "y") position of spots of background ratio
+    ``c_spot`` against the calibration's own fit (ratio ``c_own``), from the refits' shifts
+    ``dim{k}_d{axis}`` (:func:`level_shift`; ``traces_at`` as :func:`shape_shift`'s). A PSF
+    that is not symmetric (coma) puts its far wing on one side: where the wings weigh more, the
+    Gaussian's centre moves towards them."""
+    own = np.zeros(np.shape(c_spot))
+    dim = [traces_at(f"dim{k}_d{axis}") for k in range(len(LEVELS))]
+    return level_shift(own, dim, traces_at, c_spot, c_own, c_from)
+
+
+def level_shift(
+    own: np.ndarray,
+    dim: list[np.ndarray],
+    traces_at: Callable[[str], np.ndarray],
+    c_spot: np.ndarray,
+    c_own: np.ndarray,
+    c_from: np.ndarray | None = None,
+) -> np.ndarray:
+    """``v(c_spot) − v(c_from)`` (n,) of a value v whose calibration fit (ratio ``c_own``) gives
+    ``own`` (n,) and whose refits give ``dim`` (one (n,) array per level of :data:`LEVELS`):
+    v(c) linear in log c between the calibration's own fit and the refits above ``c_own`` (the
+    last one's beyond them; NaN where a refit is missing). ``c_from`` (default ``c_own``; never
+    below it) is where the correction starts: 0 where ``c_spot ≤ c_from``. A refit's own c is
+    measured as a spot's: its fitted background over its fitted amplitude (``traces_at``'s
+    ``dim{k}_background`` and ``dim{k}_amplitude``; the refit has no read noise). Both differ
+    from the level: the fitted background of the bright image also holds the PSF's far wings,
+    which are removed with it, and the Gaussian's amplitude changes with the background."""
     with np.errstate(invalid="ignore", divide="ignore"):
         start = np.log(np.asarray(c_own, dtype=np.float64))
         x_from = start if c_from is None else np.maximum(np.log(np.asarray(c_from, float)), start)

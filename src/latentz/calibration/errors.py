@@ -6,8 +6,9 @@ Three independent parts, added in quadrature:
 1. **the fit's precision**: with the joint readout, the curvature of its distance to the
    calibration curves (:mod:`latentz.calibration.readout`); with the one shape value, the
    errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the slope of the
-   inverse function dz/ds; laterally, the fit's own x, y error, plus the slope of Δx'(z),
-   Δy'(z) times the z error;
+   inverse function dz/ds; laterally, the fit's own x, y error, plus the z error carried
+   through Δx'(z), Δy'(z) (:func:`through_z`: the slope times σ_z where σ_z is small against
+   the curve's bend, the curve's spread over the calibrated span where σ_z spans it);
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter); laterally also its lack of fit, the part of the residual σ
@@ -37,14 +38,17 @@ are added, while the error between particles grows.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import pandas as pd
 
+if TYPE_CHECKING:
+    from latentz.calibration.polymodel import PolyModel
+
 __all__ = [
     "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise", "noise_by_z",
+    "measured_noise", "noise_by_z", "through_z",
 ]  # fmt: skip
 
 #: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
@@ -54,6 +58,10 @@ NOISE_WINDOW = 12
 MIN_PER_BIN = 30
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
+#: Equally spaced nodes (in σ) and normal weights for :func:`through_z`: each node is clipped
+#: to the span, so the normal's mass beyond an end sits at that end.
+_NODES = np.linspace(-5.0, 5.0, 41)
+_WEIGHTS = np.exp(-0.5 * _NODES**2) / np.exp(-0.5 * _NODES**2).sum()
 
 
 def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
@@ -172,6 +180,23 @@ def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]
     if floor < 0:
         return 0.0, mean_e / mean_d
     return floor, slope
+
+
+def through_z(
+    model: PolyModel, z_nm: np.ndarray, sigma_z_nm: np.ndarray, span_nm: np.ndarray
+) -> np.ndarray:
+    """1σ (the model's units, (n,)) of ``model(z') − model(z)`` for z' normal about each row's
+    ``z_nm`` with σ ``sigma_z_nm`` (nm), each z' held within its row's ``span_nm`` ((n, 2),
+    nm; a spot in range lies there). |model'(z)|·σ_z where σ_z is small against the curve's
+    bend; where σ_z spans the curve (weak astigmatism: σ_z of microns), the curve's spread over
+    the span, not a slope times a σ_z many times wider. NaN where σ_z is."""
+    sigma = np.asarray(sigma_z_nm, dtype=np.float64)
+    offsets = sigma[:, None] * _NODES[None]
+    offsets[:, _NODES == 0] = 0.0  # the centre, also where σ_z is infinite
+    z = np.asarray(z_nm, dtype=np.float64)[:, None]
+    moved = np.clip(z + offsets, span_nm[:, :1], span_nm[:, 1:])
+    spread = model(moved) - model(z[:, 0])[:, None]
+    return np.where(np.isnan(sigma), np.nan, np.sqrt(spread**2 @ _WEIGHTS))
 
 
 def combine(*parts: np.ndarray) -> np.ndarray:

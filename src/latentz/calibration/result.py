@@ -31,6 +31,7 @@ from latentz.calibration.errors import (
     fit_sigma_s,
     measured_noise,
     noise_by_z,
+    through_z,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
@@ -603,14 +604,13 @@ class Calibration:
         )
         return z, {"x": dx_w, "y": dy_w}, in_range & located
 
-    def _dimming_shift(
-        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
-        ref: np.ndarray, of: Callable[..., np.ndarray] | None = None,
-    ) -> np.ndarray:  # fmt: skip
-        """How much brighter-than-the-spot calibration images shift the spots' shape values
-        (:func:`~latentz.calibration.dimming.shape_shift`; ``of(amplitude, wx, wy, rho)``, if
-        given, in place of the shape value), from particle ``p``'s refits at the spots' first
-        z; 0 where that is unknown.
+    def _dimming_terms(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray
+    ) -> tuple[Callable[[str], np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+        """What the brightness corrections of spots of fitted ``amplitude`` and ``background``
+        on particles ``p`` at ``z`` read: particle ``p``'s traces at z (``trace_at(name)``),
+        the spots' background ratio c, the particle's own c there, and the c the correction
+        starts from.
 
         Where the calibration particles' brightness follows their size (their heights were
         taken off, :mod:`latentz.calibration.heights`), spots within the calibration's own range
@@ -619,17 +619,13 @@ class Calibration:
         starts there, and its start moves back to the particle's own ratio c as the spot's c
         goes as far again (in log c) beyond the edge, so that dim emitters get the whole shift
         from their particle's own fit (:mod:`~latentz.calibration.dimming` notes)."""
-        from latentz.calibration.dimming import dimmest, shape_shift
+        from latentz.calibration.dimming import dimmest
 
         readnoise = self.camera.readnoise
         at = row_weights(self.local.z_nm, p, z)
 
         def trace_at(name: str) -> np.ndarray:
             return interp_rows(self.local.z_nm, self.traces[name], p, z, at)
-
-        def shape_of(a, wx, wy, rho):
-            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
-                               amplitude_ref=ref)  # fmt: skip
 
         c_spot = background_ratio(background, amplitude, readnoise)
         c_own = background_ratio(trace_at("background"), trace_at("amplitude"), readnoise)
@@ -644,8 +640,37 @@ class Calibration:
             # the start fades from the edge back to the particle's own c as far again beyond it
             with np.errstate(invalid="ignore", divide="ignore"):
                 c_from = np.clip(edge**2 / c_spot, c_own, edge)
-        shift = shape_shift(of or shape_of, trace_at, c_spot, c_own, c_from=c_from)
+        return trace_at, c_spot, c_own, c_from
+
+    def _dimming_shift(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
+        ref: np.ndarray, of: Callable[..., np.ndarray] | None = None,
+    ) -> np.ndarray:  # fmt: skip
+        """How much brighter-than-the-spot calibration images shift the spots' shape values
+        (:func:`~latentz.calibration.dimming.shape_shift`; ``of(amplitude, wx, wy, rho)``, if
+        given, in place of the shape value), from particle ``p``'s refits at the spots' z
+        (:meth:`_dimming_terms`); 0 where that is unknown."""
+        from latentz.calibration.dimming import shape_shift
+
+        def shape_of(a, wx, wy, rho):
+            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
+                               amplitude_ref=ref)  # fmt: skip
+
+        terms = self._dimming_terms(amplitude, background, p, z)
+        shift = shape_shift(of or shape_of, *terms)
         return np.where(np.isfinite(shift), shift, 0.0)
+
+    def _position_shifts(
+        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """How much brighter-than-the-spot calibration images shift the spots' fitted x and y
+        (px, :func:`~latentz.calibration.dimming.position_shift`), from particle ``p``'s
+        refits at the spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
+        from latentz.calibration.dimming import position_shift
+
+        terms = self._dimming_terms(amplitude, background, p, z)
+        shifts = {axis: position_shift(axis, *terms) for axis in ("x", "y")}
+        return {axis: np.where(np.isfinite(v), v, 0.0) for axis, v in shifts.items()}
 
     def _transfer_sigma(self, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
         """1σ (nm) of the dimming correction carried from the nearest particle to spots at
@@ -835,8 +860,14 @@ class Calibration:
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
         out, px = spots.copy(), self.camera.pixel_size_nm
+        dimmed = None  # the spot's own brightness moves its fitted centre (coma)
+        if "background" in spots.columns and "dim0_dx" in self.traces.data:
+            background = spots["background"].to_numpy(float)
+            dimmed = self._position_shifts(cols["amplitude"], background, p, z)
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
+            if dimmed is not None:
+                shift = shift + dimmed[axis]
             err = self._lateral_error(axis, spots, p, z, in_range, at, z_err, distance)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
@@ -951,9 +982,12 @@ class Calibration:
         distance: np.ndarray,
     ) -> np.ndarray:
         """σ of the corrected ``axis`` position (nm): the spot's own, the particle's model
-        error and lack of fit, σ_z through the correction's slope, and the field model's."""
+        error and lack of fit, σ_z through the particle's correction
+        (:func:`~latentz.calibration.errors.through_z` over its span), and the field model's."""
         px = self.camera.pixel_size_nm
-        slope = self._error_model(axis)[2][p](np.where(in_range, z, 0.0))
+        model = self.local.dx if axis == "x" else self.local.dy
+        z_in = np.where(in_range, z, 0.0)
+        from_z = through_z(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in spots:
             own = spots[f"{axis}_err"].to_numpy(float)
@@ -961,7 +995,7 @@ class Calibration:
             own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-        return combine(own * px, model_d * px, lack * px, slope * z_err * px, field_d)
+        return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
 
 
 def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
