@@ -27,6 +27,7 @@ from latentz.camera import Camera
 from latentz.detect import cut_photons, detect_arrays, roi_windows
 from latentz.fit.api import FIT_COLUMNS, METHODS, result_table
 from latentz.io import as_frames, open_movie, read_frames
+from latentz.localization.crowding import with_crowding_errors
 from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
 from latentz.localization.mismatch import check_calibration_fits
@@ -386,7 +387,7 @@ def localize(
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))
-    table = assess(table, calibration)
+    table = with_crowding_errors(assess(table, calibration), movie.shape[1:])
     if calibration is not None:
         table = check_calibration_fits(table, calibration)
     return table
