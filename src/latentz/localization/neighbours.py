@@ -1,15 +1,16 @@
 """Crowded ROIs: fit each spot again with its detected neighbours' light taken out.
 
 A ROI (15 px with a default calibration) often holds part of another emitter's image; one
-Gaussian of eq. 1 fitted to it takes up that light, which biases its position, widths and so z
-far beyond its error (on simulated molecules at 1 per µm², z by about 4x the reported 1σ).
-:func:`refit_without_neighbours` subtracts, from each ROI, eq. 1 of every other fit of the same
-frame whose centre lies within :data:`REACH_PX` of the ROI (its amplitude, widths and ρ; not its
-background) and fits the ROI again from its first fit, :data:`PASSES` times, each pass with the
-neighbours' fits of the pass before. Fits within `DUPLICATE_PX` of each other are one emitter
-(:func:`latentz.localization.pairs.copies`): a spot's own copies are not subtracted from it,
-and of a neighbour's copies only the first is. Only converged fits are subtracted, and a refit
-replaces the first fit only where it converged. Emitters that were not detected stay in the ROI.
+Gaussian of eq. 1 fitted to it takes up that light, which biases its position and widths, and
+so z. :func:`refit_without_neighbours` subtracts, from each ROI, eq. 1 of every other fit of the
+same frame whose centre lies within :data:`REACH_PX` of the ROI (its amplitude, widths and ρ;
+not its background) and fits the ROI again from its first fit, :data:`PASSES` times, each pass
+with the neighbours' fits of the pass before. The refit's Pearson χ² counts the subtracted
+light's shot noise in each pixel's variance (:mod:`.crowding` reads it). Fits within
+`DUPLICATE_PX` of each other are one emitter (:func:`latentz.localization.pairs.copies`): a
+spot's own copies are not subtracted from it, and of a neighbour's copies only the first is.
+Only converged fits are subtracted, and a refit replaces the first fit only where it converged.
+Emitters that were not detected stay in the ROI: :mod:`.crowding` puts their bias in the errors.
 """
 
 from __future__ import annotations
@@ -54,12 +55,28 @@ def neighbour_light(
     src = np.flatnonzero(source)[np.fromiter((j for rows in near for j in rows), np.int64)]
     keep = group[src] != group[into]
     into, src = into[keep], src[keep]
+    # summed in the order of the neighbours' positions: the same light whatever the rows' order
+    order = np.lexsort((params[src, 1], params[src, 0], into))
+    into, src = into[order], src[order]
     if into.size:
         local = params[src].copy()
         local[:, :2] -= corner[into]
         local[:, 3] = 0.0  # the background is the ROI's own
         np.add.at(light, into, model_and_jacobian(local, (h, w), jacobian=False)[0])
     return light.reshape(n, h, w)
+
+
+def _pearson(
+    params: np.ndarray, rois: np.ndarray, light: np.ndarray, readnoise: float
+) -> np.ndarray:
+    """Pearson χ² of fits ``params`` (n, 7, ROI px) to ``rois`` less the neighbours' ``light``
+    (n, h, w), over the pixels inside the frame: the subtracted light's shot noise counts in
+    each pixel's variance, ``mu + light + readnoise²``."""
+    mu = model_and_jacobian(params, rois.shape[1:], jacobian=False)[0].reshape(rois.shape)
+    light = light.reshape(rois.shape)
+    with np.errstate(invalid="ignore"):
+        terms = (rois - light - mu) ** 2 / np.maximum(mu + light + readnoise**2, 1e-12)
+    return np.nansum(terms, axis=(1, 2))
 
 
 def refit_without_neighbours(
@@ -74,7 +91,8 @@ def refit_without_neighbours(
     device: str = "cpu",
 ) -> FitResult:
     """``fit`` (x, y in full-frame pixels) with every ROI that holds another fit's light fitted
-    again with that light subtracted (see the module docstring); errors are the sandwich's.
+    again with that light subtracted (see the module docstring); errors are the sandwich's, and
+    ``chi2`` counts the subtracted light's shot noise in each pixel's variance.
 
     ``rois`` (n, h, w) are the photoelectrons the fits were made in (NaN outside the frame),
     ``corner`` (n, 2) their first column and row, ``frame`` (n,) their frames, ``windows`` the
@@ -94,6 +112,8 @@ def refit_without_neighbours(
             windows=None if windows is None else windows[crowded], device=device,
             errors="sandwich",
         )  # fmt: skip
+        chi2 = _pearson(refit.params, rois[crowded], light[crowded], readnoise)
+        refit = refit._replace(chi2=chi2)
         params = refit.params.copy()
         params[:, :2] += corner[crowded]
         better = np.zeros(len(crowded), bool)

@@ -48,7 +48,7 @@ from latentz.localization.quality import DUPLICATE_PX, assess
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["split_pairs", "copies", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
+__all__ = ["split_pairs", "copies", "crowded", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
 
 #: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
 PAIR_COLUMNS = ("pair", "merged")
@@ -92,7 +92,7 @@ def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.Dat
         return assess(calibration.apply(table), calibration)
 
 
-def _crowded(table: pd.DataFrame, half: float) -> np.ndarray:
+def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
     """Which rows have another fit within ``half`` px (x and y) that is not the same emitter
     (more than `DUPLICATE_PX` away): a third emitter the two-emitter fit would not model."""
     points = _points(table)
@@ -127,7 +127,7 @@ def _candidates(
     to the poor fits only."""
     half = (min(shape) - 1) / 2
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    finite &= ~_crowded(table, half)
+    finite &= ~crowded(table, half)
     dof = seen_pixels - len(PARAMS)  # a ROI clipped to the frame sees fewer pixels
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
