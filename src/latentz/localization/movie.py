@@ -24,12 +24,14 @@ from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import cut_photons, detect_arrays
+from latentz.detect import cut_photons, detect_arrays, roi_windows
 from latentz.fit.api import FIT_COLUMNS, METHODS, result_table
 from latentz.io import as_frames, open_movie, read_frames
+from latentz.localization.crowding import with_crowding_errors
 from latentz.localization.edges import with_truncation_errors
 from latentz.localization.follow import localize_tracked
 from latentz.localization.mismatch import check_calibration_fits
+from latentz.localization.neighbours import refit_without_neighbours
 from latentz.localization.pairs import PAIR_COLUMNS, split_pairs
 from latentz.localization.quality import assess
 from latentz.localization.recentre import fit_recentred
@@ -112,8 +114,14 @@ def _localize_chunk(
         read, found.rois, (found.row0, found.col0), (found.row, found.col),
         frame_shape=block.shape[-2:], method=method, readnoise=readnoise, device=device,
     )  # fmt: skip
+    half = roi_size // 2
+    windows = roi_windows(done.row0 + half, done.col0 + half, roi_size, block.shape[-2:])[2]
+    fit = refit_without_neighbours(
+        done.fit, done.rois, np.column_stack([done.col0, done.row0]), found.frame, windows,
+        method=method, readnoise=readnoise, device=device,
+    )  # fmt: skip
     table = result_table(
-        done.fit, frame=first_frame + found.frame, snr=found.snr, edge=done.edge,
+        fit, frame=first_frame + found.frame, snr=found.snr, edge=done.edge,
         close_pair=found.close_pair,
     )  # fmt: skip
     if not pairs:
@@ -379,7 +387,7 @@ def localize(
     table.attrs["roi_size"] = roi_size
     if calibration is not None:
         table = calibration.apply(with_truncation_errors(table, movie.shape[1:]))
-    table = assess(table, calibration)
+    table = with_crowding_errors(assess(table, calibration), movie.shape[1:])
     if calibration is not None:
         table = check_calibration_fits(table, calibration)
     return table

@@ -48,7 +48,7 @@ from latentz.localization.quality import DUPLICATE_PX, assess
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["split_pairs", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
+__all__ = ["split_pairs", "copies", "crowded", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
 
 #: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
 PAIR_COLUMNS = ("pair", "merged")
@@ -92,7 +92,7 @@ def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.Dat
         return assess(calibration.apply(table), calibration)
 
 
-def _crowded(table: pd.DataFrame, half: float) -> np.ndarray:
+def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
     """Which rows have another fit within ``half`` px (x and y) that is not the same emitter
     (more than `DUPLICATE_PX` away): a third emitter the two-emitter fit would not model."""
     points = _points(table)
@@ -102,11 +102,12 @@ def _crowded(table: pd.DataFrame, half: float) -> np.ndarray:
     return near > same
 
 
-def _copies(table: pd.DataFrame) -> np.ndarray:
-    """For each row, the first row of its group of fits of one frame within `DUPLICATE_PX` of
-    each other (chained): detections whose fits converged on one spot share a group."""
-    n = len(table)
-    close = cKDTree(_points(table)).query_pairs(DUPLICATE_PX, output_type="ndarray")
+def copies(x: np.ndarray, y: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """For each fit (``x, y`` in pixels, ``frame``), the first of its group of fits of one frame
+    within `DUPLICATE_PX` of each other (chained): detections whose fits converged on one spot
+    share a group."""
+    n = len(x)
+    close = cKDTree(_xy_frame(x, y, frame)).query_pairs(DUPLICATE_PX, output_type="ndarray")
     graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
     return np.unique(label, return_index=True)[1][label]
@@ -121,12 +122,12 @@ def _candidates(
     group: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(candidate, beyond): which rows, fitted in ROIs of ``shape`` pixels of which
-    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `_copies` group), and
+    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), and
     which are shaped beyond one emitter (see the module docstring); the calibration is applied
     to the poor fits only."""
     half = (min(shape) - 1) / 2
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    finite &= ~_crowded(table, half)
+    finite &= ~crowded(table, half)
     dof = seen_pixels - len(PARAMS)  # a ROI clipped to the frame sees fewer pixels
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
@@ -206,7 +207,7 @@ def split_pairs(
     """
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
     limit = _width_limit(table)
-    group = _copies(table)
+    group = copies(*(table[c].to_numpy(float) for c in ("x", "y", "frame")))
     seen = np.isfinite(rois).sum(axis=(1, 2))
     chosen, beyond = _candidates(table, calibration, limit, rois.shape[1:], seen, group)
     candidates = np.flatnonzero(chosen)
@@ -237,7 +238,7 @@ def split_pairs(
 
 def _detected_apart(table: pd.DataFrame, members: pd.DataFrame, group: np.ndarray) -> np.ndarray:
     """For each pair of ``members`` (rows 2k, 2k + 1), whether either emitter is within
-    `DUPLICATE_PX` of another detection's fit in its frame (not one of the `_copies` ``group``
+    `DUPLICATE_PX` of another detection's fit in its frame (not one of the `copies` ``group``
     of the pair's own row ``table.loc[pair]``): the ROI held a neighbour that was detected and
     fitted by itself."""
     if len(members) == 0:
@@ -257,9 +258,14 @@ def _in_frame(fit: PairFit, rois: np.ndarray) -> np.ndarray:
 
 
 def _points(rows: pd.DataFrame) -> np.ndarray:
+    """`_xy_frame` of a table's ``x, y, frame``."""
+    return _xy_frame(*(rows[c].to_numpy(float) for c in ("x", "y", "frame")))
+
+
+def _xy_frame(x: np.ndarray, y: np.ndarray, frame: np.ndarray) -> np.ndarray:
     """x, y (pixels) and the frame times `_FRAME_GAP`: rows of other frames never within
     reach; a position that is not finite lies far from all."""
-    points = rows[["x", "y", "frame"]].to_numpy(float) * [1.0, 1.0, _FRAME_GAP]
+    points = np.column_stack([x, y, np.asarray(frame, float) * _FRAME_GAP])
     return np.nan_to_num(points, nan=-1e12, posinf=-1e12, neginf=-1e12)
 
 
