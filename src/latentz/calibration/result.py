@@ -406,18 +406,18 @@ class Calibration:
 
     def _error_model(self, axis: str) -> tuple[np.ndarray, np.ndarray, Any]:
         """For "z" (the calibration's shape), "x" or "y": each particle's residual σ (n, n_z)
-        with gaps bridged by the nearest finite value, its count of finite values (n,), and the
-        derivative of its model (the inverse z(s), or Δx'(z), Δy'(z)); computed once."""
+        with gaps bridged by the nearest finite value, its count of finite values (n,), and for
+        "z" the derivative of its inverse z(s) (None for "x" and "y"); computed once."""
         key = f"error_model/{axis}"
         if key not in self._cache:
+            slope = None
             if axis == "z":
                 shape = self.local.shapes[self.shape]
-                sigma, model = shape.sigma_z, shape.inverse
+                sigma, slope = shape.sigma_z, shape.inverse.derivative()
             else:
                 sigma = self.local.sigma_dx if axis == "x" else self.local.sigma_dy
-                model = self.local.dx if axis == "x" else self.local.dy
             filled = _bridge_gaps(sigma)
-            self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), model.derivative())
+            self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), slope)
         return self._cache[key]
 
     def _lack_of_fit(self, axis: str) -> np.ndarray:
