@@ -30,18 +30,18 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
    guess anywhere in the stack (span/√12) counts as a guess.
 3. **Choice** (:func:`choose_roi`): ``core_nm`` is the RMS of those errors over the *core*
    planes (where every candidate measures: at least half its kept particles usable, and some
-   kind of emitter localized to better than half a guess; near focus), pooled with every
-   alias of the stack; ``range_nm`` the same over every plane any candidate measures; each has
-   a standard error over the particles (over the planes for a lone particle). A candidate is
-   *as good as* the best when it exceeds it by no more than their noise (the standard errors
-   in quadrature) or :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one particle is scored
-   on that particle's own images read by its own models (nothing is held out), so it competes
-   only where no candidate keeps two. The candidates as good as the best near focus are
-   eligible, and the smallest of them as good as the best of them over the range is
-   chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
-   nothing near focus, and a shorter usable z range is preferred to lost precision near
-   focus. A candidate whose calibration fails is skipped, so the choice never fails where a
-   smaller ROI works.
+   kind of emitter localized to better than half a guess; near focus), pooled with every alias
+   of the stack; ``range_nm`` the same over every plane any candidate measures; each has a
+   standard error over the particles (over the planes for a lone particle). A candidate is *as
+   good as* the best when it exceeds it by no more than their noise (the standard errors in
+   quadrature) or :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one
+   particle is scored on that particle's own images read by its own models (nothing is held
+   out), so it competes only where no candidate keeps two. The candidates as good as the best
+   near focus are eligible, and the smallest of them as good as the best of them over the range
+   is chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
+   nothing near focus, and a shorter usable z range is preferred to lost precision near focus.
+   A candidate whose calibration fails is skipped, so the choice never fails where a smaller
+   ROI works.
 """
 
 from __future__ import annotations
