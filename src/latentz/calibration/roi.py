@@ -193,12 +193,12 @@ def expected_errors(
         rms = np.sqrt(np.sum(capped**2, axis=0) / np.maximum(count, 1))
         errors.append(np.where(count > 0, rms, guess))  # none measured: a guess
         squares.append(np.where(measured, capped**2, np.nan))
-    alias = np.array([np.minimum(a[kept], guess) ** 2 for a in aliases])
     usable_nm = np.nanmedian(cal.usable_z_nm[kept], axis=0) if kept.size else [np.nan] * 2
     return {
         "errors": np.array(errors),
         "particle_sq": np.array(squares),
-        "alias_sq": np.where(np.isfinite(np.array(aliases)[:, kept]), alias, np.nan),
+        "alias_sq": np.array([np.where(np.isfinite(a), np.minimum(a, guess) ** 2, np.nan)[kept]
+                              for a in aliases]),  # fmt: skip
         "measured": (usable & ~np.isnan(cv))[kept].mean(axis=0) if kept.size else np.zeros(z.size),
         "guess_nm": guess,
         "usable_nm": np.asarray(usable_nm, dtype=np.float64),
