@@ -179,6 +179,26 @@ def test_models_are_never_used_across_a_gap_of_failed_fits(field_model):
     assert np.max(np.abs(out["x_nm"].to_numpy() - true_x)[keep]) < 30.0
 
 
+def test_fits_failing_only_beyond_the_models_run_do_not_cull_a_particle():
+    """Spots that outgrow the ROI fail to fit far from focus: here every plane beyond ±2 µm
+    (a third of the ±3 µm stack) failed. The models use only the run about focus, so the
+    particles are kept (before, every one was culled as ``fit_failed`` and calibrate raised)
+    and independent emitters within ±1 µm are localized from them."""
+    traces, _ = make_traces(40, seed=5)
+    far = np.abs(traces.z_nm) > 2000.0
+    for name in ("x", "y", "wx", "wy", "rho", "amplitude"):
+        traces.data[name][:, far] = np.nan
+    traces.data["converged"][:, far] = False
+    cal = calibrate_traces(traces, camera=CAM, shape="rho", field_model="nearest")
+    assert not cal.particles["cull_reason"].str.contains("fit_failed").any()
+    assert cal.kept.size >= 38
+    place = np.random.default_rng(8).uniform(0, 500, (20, 2))
+    test, _ = make_traces(20, z_nm=np.arange(-1000.0, 1000.1, 50.0), z_f=np.zeros(20),
+                          positions=place, seed=9)  # fmt: skip
+    out = cal.apply(traces_table(test))
+    assert out["in_range"].mean() >= 0.99
+
+
 def test_spots_far_beyond_the_monotonic_range_are_not_in_range():
     """ρ is monotonic within about ±1.3 µm of focus here and returns towards 0 beyond, so a
     spot 2.5-3 µm from focus has the ρ of one inside the range, while its widths are far

@@ -99,6 +99,26 @@ def test_a_roi_that_keeps_one_particle_loses_to_one_whose_errors_are_held_out():
     assert choose_roi({11: _score(30.0, 60.0) | {"kept": 1}, 15: lone})[0] == 15
 
 
+def test_a_roi_that_reads_emitters_beyond_its_range_in_range_loses():
+    """Beyond the usable range a spot that has outgrown a small ROI can look like one inside
+    it: read in range, its z is wrong by microns and its reported error does not say so. Two
+    ROIs equal near focus and over the range: the one whose emitters from beyond its particles'
+    usable range are read in range (a tenth of them, 1.5 µm off) loses to the one that flags
+    them out of range, though it is smaller."""
+    honest, aliasing = _score(30.0, 40.0), _score(30.0, 40.0)
+    n_kinds, n_z = honest["errors"].shape
+    for score in (honest, aliasing):
+        score["particle_sq"] = np.full((n_kinds, score["kept"], n_z), 30.0**2)
+        score["alias_sq"] = np.full((n_kinds, score["kept"], n_z), np.nan)
+    aliasing["alias_sq"][:2, : aliasing["kept"] // 10, :] = 1500.0**2  # the dim kinds
+    chosen, record = choose_roi({11: aliasing, 15: honest})
+    assert chosen == 15
+    assert record["candidates"]["11"]["core_nm"] > 2 * record["candidates"]["15"]["core_nm"]
+    # without the aliases the smaller one wins the tie
+    aliasing["alias_sq"][:] = np.nan
+    assert choose_roi({11: aliasing, 15: honest})[0] == 11
+
+
 def test_the_smaller_roi_wins_a_tie():
     assert choose_roi({19: _score(30.0, 40.0), 15: _score(30.0, 40.0)})[0] == 15
 

@@ -30,6 +30,7 @@ __all__ = [
     "ShapeModel",
     "LocalModels",
     "fit_local",
+    "measured_run",
     "sliding_rms",
     "peak",
     "row_mean",
@@ -224,7 +225,7 @@ def _between(left: np.ndarray, right: np.ndarray, n_z: int) -> np.ndarray:
     return (idx >= left[:, None]) & (idx <= right[:, None])
 
 
-def _measured_run(traces: Traces, z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
+def measured_run(traces: Traces, z: np.ndarray, z_f: np.ndarray) -> np.ndarray:
     """(n, n_z) mask of the planes each particle's models may use: the run about its focus
     with no two consecutive planes unmeasured (a failed fit's NaN). A polynomial over a wider
     gap is unconstrained there, and a plane beyond it would let the models reach across."""
@@ -324,7 +325,7 @@ def fit_local(
     step = np.min(np.diff(traces.z_nm))
     in_focus = interior & (z_f > traces.z_nm[0] + step) & (z_f < traces.z_nm[-1] - step)
 
-    run = _measured_run(traces, z, z_f)
+    run = measured_run(traces, z, z_f)
     lateral = {}
     for axis in ("x", "y"):
         model = PolyModel.from_estimate(z, traces[axis], order=options.lateral_order, mask=run)

@@ -21,24 +21,27 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
    particle (:func:`~latentz.calibration.roi_emitters.emitter_errors`); for emitters like the
    calibration particles, the cross-validated error of the bright image (each particle's
    images localized with the nearest *other* particle's inverse model, as
-   :mod:`~latentz.calibration.shape_choice` does). Where a particle's plane is outside its
-   usable range (:attr:`~latentz.calibration.Calibration.usable_planes`) it is not counted; an
-   emitter not localized in range, and any error above a guess anywhere in the stack
-   (span/√12), counts as a guess.
+   :mod:`~latentz.calibration.shape_choice` does). Inside a particle's usable range
+   (:attr:`~latentz.calibration.Calibration.usable_planes`) an emitter not localized in range
+   counts as a guess. Beyond it an emitter flagged out of range costs nothing (a shorter
+   range), but one read in range is an *alias*: a defocused spot that looks like one inside
+   the range (in a small ROI it is cut off where it outgrows the ROI, so its fitted widths
+   stop growing), read at a wrong z with an error that does not say so. Any error above a
+   guess anywhere in the stack (span/√12) counts as a guess.
 3. **Choice** (:func:`choose_roi`): ``core_nm`` is the RMS of those errors over the *core*
    planes (where every candidate measures: at least half its kept particles usable, and some
-   kind of emitter localized to better than half a guess; near focus); ``range_nm`` the same
-   over every plane any candidate measures; each has a standard error over the particles
-   (over the planes for a lone particle). A candidate is *as good as* the best when it
-   exceeds it by no more than their noise (the standard errors in quadrature) or
-   :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one particle is scored
-   on that particle's own images read by its own models (nothing is held out), so it competes
-   only where no candidate keeps two. The candidates as good as the best near focus are
-   eligible, and the smallest of them as good as the best of them over the range is
-   chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
-   nothing near focus, and a shorter usable z range is preferred to lost precision near
-   focus. A candidate whose calibration fails is skipped, so the choice never fails where a
-   smaller ROI works.
+   kind of emitter localized to better than half a guess; near focus), pooled with every alias
+   of the stack; ``range_nm`` the same over every plane any candidate measures; each has a
+   standard error over the particles (over the planes for a lone particle). A candidate is *as
+   good as* the best when it exceeds it by no more than their noise (the standard errors in
+   quadrature) or :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one
+   particle is scored on that particle's own images read by its own models (nothing is held
+   out), so it competes only where no candidate keeps two. The candidates as good as the best
+   near focus are eligible, and the smallest of them as good as the best of them over the range
+   is chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
+   nothing near focus, and a shorter usable z range is preferred to lost precision near focus.
+   A candidate whose calibration fails is skipped, so the choice never fails where a smaller
+   ROI works.
 """
 
 from __future__ import annotations
@@ -164,9 +167,11 @@ def expected_errors(
     (n_kinds, n_z), one row per photon count of :data:`EMITTER_PHOTONS` and a last for emitters
     like the calibration particles, RMS over the kept particles; ``particle_sq`` (n_kinds,
     n_kept, n_z) each kept particle's capped squared error (NaN where unmeasured), for the
-    standard errors of :func:`choose_roi`; ``measured`` (n_z,) the fraction of them whose
-    plane is usable; ``guess_nm`` the error of a guess; ``usable_nm`` the median over the kept
-    particles of their usable range's ends (tilt-corrected z)."""
+    standard errors of :func:`choose_roi`; ``alias_sq`` (n_kinds, n_kept, n_z) the same of the
+    aliases (NaN where none); ``measured`` (n_z,) the fraction of them whose plane is usable
+    and whose bright image is read by its neighbour; ``guess_nm`` the error of a guess;
+    ``usable_nm`` the median over the kept particles of their usable range's ends
+    (tilt-corrected z)."""
     local, shape, kept = cal.local, cal.shape, cal.kept
     use = np.zeros(cal.culled.size, bool)
     use[kept] = True
@@ -174,10 +179,12 @@ def expected_errors(
     cv = _cross_validated(local, shape, use, cal.positions, reference=uses_amplitude(shape))
     z = cal.traces.z_nm
     guess = float(np.ptp(z)) / np.sqrt(12.0)
-    usable = ~np.isnan(cv)
-    kinds = [np.where(usable, emitter_errors(cal, stacks, camera, background, photons), np.nan)
-             for photons in EMITTER_PHOTONS]  # fmt: skip
-    kinds.append(np.abs(cv))
+    usable = cal.usable_planes  # beyond it a read in range is an alias
+    kinds, aliases = [], []
+    for error in [emitter_errors(cal, stacks, camera, background, photons)
+                  for photons in EMITTER_PHOTONS] + [cv]:  # fmt: skip
+        kinds.append(np.where(usable, np.abs(error), np.nan))
+        aliases.append(np.where(usable, np.nan, np.abs(error)))  # inf, NaN: out of range
     errors, squares = [], []
     for error in kinds:
         measured = ~np.isnan(error[kept])  # inf: not localized, a guess
@@ -190,7 +197,9 @@ def expected_errors(
     return {
         "errors": np.array(errors),
         "particle_sq": np.array(squares),
-        "measured": usable[kept].mean(axis=0) if kept.size else np.zeros(z.size),
+        "alias_sq": np.array([np.where(np.isfinite(a), np.minimum(a, guess) ** 2, np.nan)[kept]
+                              for a in aliases]),  # fmt: skip
+        "measured": (usable & ~np.isnan(cv))[kept].mean(axis=0) if kept.size else np.zeros(z.size),
         "guess_nm": guess,
         "usable_nm": np.asarray(usable_nm, dtype=np.float64),
     }
@@ -241,19 +250,30 @@ def _measures(score: dict[str, Any]) -> np.ndarray:
 
 def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
     """RMS (nm) of one candidate's errors over ``planes`` (a guess's where it measures fewer
-    than half its particles), and its standard error over the particles (delta method on
-    each particle's mean square; over the planes for a lone particle; 0 without
-    ``particle_sq``)."""
+    than half its particles) pooled with its aliases (``alias_sq``: emitters from planes beyond
+    a particle's usable range that are read in range, anywhere in the stack), and its standard
+    error over the particles (delta method on each particle's mean square; over the planes for
+    a lone particle; 0 without ``particle_sq``)."""
     if not planes.any():
         return np.inf, 0.0
     own = score["measured"] >= 0.5
-    errors = np.where(own, score["errors"], score["guess_nm"])
-    value = float(np.sqrt(np.mean(errors[:, planes] ** 2)))
+    errors = np.where(own, score["errors"], score["guess_nm"])[:, planes]
+    alias = score.get("alias_sq")
+    n_kept = max(int(score.get("kept", 0)), 1)
+    if alias is None:
+        alias = np.full((1, n_kept, 1), np.nan)
+    weight = errors.size * n_kept  # each kind and plane holds every kept particle
+    value = float(np.sqrt((np.sum(errors**2) * n_kept + np.nansum(alias))
+                          / (weight + np.isfinite(alias).sum())))  # fmt: skip
     squares = score.get("particle_sq")
     if squares is None or squares.shape[1] == 0:
         return value, 0.0
     squares = np.where(own, squares, score["guess_nm"] ** 2)[:, :, planes]
-    samples = np.nanmean(np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1), axis=1)
+    per = np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1)  # (n_kept, entries)
+    if alias.shape[1] == per.shape[0]:
+        aliased = np.moveaxis(alias, 1, 0).reshape(per.shape[0], -1)
+        per = np.concatenate([per, aliased[:, np.isfinite(aliased).any(axis=0)]], axis=1)
+    samples = np.nanmean(per, axis=1)
     if np.isfinite(samples).sum() < 2:  # a lone particle: its planes' noise draws instead
         samples = np.nanmean(squares, axis=(0, 1))
     samples = samples[np.isfinite(samples)]

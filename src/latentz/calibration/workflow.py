@@ -24,7 +24,7 @@ from latentz.calibration.culling import cull as cull_particles
 from latentz.calibration.culling import particle_features
 from latentz.calibration.depth import depth_ratio_per_nm
 from latentz.calibration.heights import particle_heights
-from latentz.calibration.local import LocalModels, LocalOptions, fit_local
+from latentz.calibration.local import LocalModels, LocalOptions, fit_local, measured_run, row_mean
 from latentz.calibration.result import FIELD_CHOICES, PAPER_SHAPES, Calibration
 from latentz.calibration.roi import (
     MIN_ROI,
@@ -464,8 +464,12 @@ def _candidates(shape: str | None, theta: float | None) -> tuple[str, ...]:
 
 
 def _hard_failures(traces: Traces, local: LocalModels) -> dict[str, np.ndarray]:
-    """Per-particle flags of outright failure: fits that failed, no focus, crowded."""
-    converged = np.mean(traces["converged"], axis=1)
+    """Per-particle flags of outright failure: fits that failed (over a fifth of the planes
+    its models use, :func:`~latentz.calibration.local.measured_run`: beyond that run the
+    particle is simply out of range, as a defocused spot outgrowing the ROI is), no focus,
+    crowded."""
+    run = measured_run(traces, local.z_nm, local.z_f)
+    converged = row_mean(np.where(run, traces["converged"], np.nan))
     return {
         "fit_failed": converged < 0.8,
         "never_in_focus": ~local.in_focus,
