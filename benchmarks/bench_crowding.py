@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import time
-import warnings
 
 import numpy as np
 import pandas as pd
@@ -31,10 +30,9 @@ from _rounds import machine, write_results
 from bench_pairs import DENSITIES, FIELD, markdown
 from scipy.spatial import cKDTree
 
-from latentz.localization import localize
-from latentz.simulate.molecules import molecule_frames, place_molecules, random_microscope
+from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
-from latentz.validation.molecules import bead_calibration
+from latentz.validation.molecules import bead_calibration, localized_molecules
 
 NEAREST_PX = (0, 2, 3, 4, 6, 10, np.inf)
 
@@ -72,17 +70,8 @@ def one_microscope(seed: int, n_frames: int) -> list[dict]:
     cal = bead_calibration(microscope, seed, field_shape=FIELD)
     out = []
     for density in DENSITIES:
-        molecules = place_molecules(
-            rng, n_frames=n_frames, frame_shape=FIELD, density_per_um2=density,
-            pixel_nm=microscope.optics.pixel_size_nm,
-        )  # fmt: skip
-        frames, truth = molecule_frames(
-            molecules, microscope, n_frames=n_frames, frame_shape=FIELD,
-            seed=int(rng.integers(2**31)),
-        )  # fmt: skip
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the CPU note; the verdicts are in the table
-            locs = localize(frames, calibration=cal)
+        locs, truth, _ = localized_molecules(microscope, cal, rng, density_per_um2=density,
+                                             n_frames=n_frames, field_shape=FIELD)  # fmt: skip
         out.append({"density /µm²": density, "molecules": len(truth),
                     "rows": matched(locs, truth)})  # fmt: skip
     return out
