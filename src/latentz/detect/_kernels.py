@@ -9,16 +9,15 @@ photoelectron copy of a chunk is made. Everything is float32: the band-passed fr
 where maxima are.
 
 Detection of a chunk is one streaming pass, `detect_frames`, in parallel (``numba.prange``) over
-(frame, strip of rows) tasks, so that a chunk of one frame still uses every core. Each input row is
-converted and filtered horizontally into a ring of ``2 r + 1`` rows, each held twice so that the
-vertical filter reads them as one block; ahead of it the wide background streams from block means
-(`_wide_row`: ``factor`` rows summed, read a second time from cache, and filtered along the block
-row into a ring of block rows; `_background_row` blurs that ring vertically when a band row needs
-the block row); each band-passed row (the ring filtered vertically, minus the background read back
-bilinearly) goes into a second ring of ``2 d + 1`` rows, ``d`` the maxima's radius; each row whose
-``d`` rows below are ready is tested (`_row_maxima`: the pixels above the floor counted first,
-which vectorises, then compared with their neighbours). Memory is a few rows per task; the
-band-passed frame is never stored.
+(frame, strip of rows) tasks, so that a chunk of one frame still uses every core. Each input row
+is converted and filtered horizontally into a ring of ``2 r + 1`` rows, each held twice so that
+the vertical filter reads them as one block; ahead of it the wide background streams from block
+means (`_wide_row`: ``factor`` rows summed, read a second time from cache, and filtered along
+the block row into a ring of block rows; `_background_row` blurs that ring vertically when a
+band row needs the block row); each band-passed row (the ring filtered vertically, minus the
+background read back bilinearly) goes into a second ring of ``2 d + 1`` rows, ``d`` the
+maxima's radius; each row whose ``d`` rows below are ready is tested (`_row_maxima`: the pixels
+above the floor counted first, which vectorises, then compared with their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
 
 The threshold is not known while the rows pass: the pass writes the band-passed frame at the
 strided pixels of :func:`latentz.detect.noise_level` (`noise_levels` takes their robust spread
