@@ -10,14 +10,14 @@ where maxima are.
 
 Detection of a chunk is one streaming pass, `detect_frames`, in parallel (``numba.prange``) over
 (frame, strip of rows) tasks, so that a chunk of one frame still uses every core. Each input row
-is converted and filtered horizontally into a ring of ``2 r + 1`` rows, each held twice so that
-the vertical filter reads them as one block; ahead of it the wide background streams from block
-means (`_wide_row`: ``factor`` rows summed, read a second time from cache, and filtered along
-the block row into a ring of block rows; `_background_row` blurs that ring vertically when a
-band row needs the block row); each band-passed row (the ring filtered vertically, minus the
-background read back bilinearly) goes into a second ring of ``2 d + 1`` rows, ``d`` the
-maxima's radius; each row whose ``d`` rows below are ready is tested (`_row_maxima`: the pixels
-above the floor counted first, which vectorises, then compared with their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
+is converted and filtered horizontally into a ring of ``2 r + 1`` rows; ahead of it the wide
+background streams from block means (`_wide_row`: ``factor`` rows summed, read a second time
+from cache, and filtered along the block row into a ring of block rows; `_background_row` blurs
+that ring vertically when a band row needs the block row); each band-passed row (the ring
+filtered vertically, minus the background read back bilinearly) goes into a second ring of
+``2 d + 1`` rows, ``d`` the maxima's radius; each row whose ``d`` rows below are ready is tested
+(`_row_maxima`: the pixels above the floor counted first, which vectorises, then compared with
+their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
 
 The threshold is not known while the rows pass: the pass writes the band-passed frame at the
 strided pixels of :func:`latentz.detect.noise_level` (`noise_levels` takes their robust spread
@@ -250,20 +250,21 @@ def _rough_noise(frame, offset, gain, scale, a, b, n_points, mad_to_sigma):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _band_row(ring, taps, i, top, bottom, fy, out):
+def _band_row(ring, weights, i, r, top, bottom, fy, out):
     """``out``: band-passed row ``i`` from the ring of horizontally filtered rows, minus the
-    background row interpolated between ``top`` and ``bottom``. The ring holds each row twice
-    (`_ring_row`), so rows ``i - r .. i + r`` are one contiguous block: with ``taps`` a tuple
-    (`_row_filter_taps`) the taps unroll and each pixel is summed in a register, in one pass
-    (a third faster than one pass per tap)."""
-    r = (len(taps) - 1) // 2
-    start = (i - r) % (ring.shape[0] // 2)
-    rows = ring[start : start + 2 * r + 1]
-    for j in range(out.shape[0]):
-        acc = taps[r] * rows[r, j] - (top[j] + fy * (bottom[j] - top[j]))
-        for k in range(r):  # symmetric taps: rows k and 2 r - k share one multiply
-            acc += taps[k] * (rows[k, j] + rows[2 * r - k, j])
-        out[j] = acc
+    background row interpolated between ``top`` and ``bottom``."""
+    w = out.shape[0]
+    ring_n = ring.shape[0]
+    centre = ring[i % ring_n]
+    wc = weights[r]
+    for j in range(w):
+        out[j] = wc * centre[j] - (top[j] + fy * (bottom[j] - top[j]))
+    for k in range(r):  # symmetric weights: rows i - r + k and i + r - k share one multiply
+        wk = weights[k]
+        above = ring[(i - r + k + ring_n) % ring_n]
+        below = ring[(i + r - k) % ring_n]
+        for j in range(w):
+            out[j] += wk * (above[j] + below[j])
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
@@ -316,16 +317,6 @@ def _filtered_row(frame, offset, gain, scale, row, r, taps, pad, out):
     _row_filter_taps(pad, taps, out)
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _ring_row(frame, offset, gain, scale, row, r, taps, pad, ring):
-    """`_filtered_row` of frame row ``row`` into the ring of ``n = len(ring) / 2`` rows, at
-    ``row % n`` and again at ``row % n + n`` (`_band_row` reads ``2 r + 1`` rows in a run)."""
-    n = ring.shape[0] // 2
-    slot = row % n
-    _filtered_row(frame, offset, gain, scale, row, r, taps, pad, ring[slot])
-    ring[slot + n] = ring[slot]
-
-
 @numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def detect_frames(
     frames, offset, gain, scale, factor, weights, taps, wide, limits, floor_scale, mad_to_sigma,
@@ -368,7 +359,7 @@ def detect_frames(
         col1 = np.empty(w, dtype=np.int64)
         colf = np.empty(w, dtype=np.float32)
         _interp_axis(w, factor, ws, col0, col1, colf)
-        ring = np.empty((2 * ring_n, w), dtype=np.float32)
+        ring = np.empty((ring_n, w), dtype=np.float32)
         band = np.empty((band_n, w), dtype=np.float32)
         pad = np.empty(w + 2 * r, dtype=np.float32)
         upsampled = np.empty((2, w), dtype=np.float32)
@@ -378,14 +369,15 @@ def detect_frames(
         acc = np.empty(w, dtype=np.float32)
         first = max(a - radius, 0)
         for v in range(first - r, first + r):  # the ring's rows above the first band row
-            _ring_row(frame, offset, gain, scale, v, r, taps, pad, ring)
+            _filtered_row(frame, offset, gain, scale, v, r, taps, pad, ring[(v + ring_n) % ring_n])
         made = max(int(math.floor(_block_position(first, factor, hs))) - rw, 0)
         ready = first  # next band-passed row to compute
         last = -2  # no block row read yet
         found = 0
         for i in range(a, b):
             while ready <= min(i + radius, h - 1):
-                _ring_row(frame, offset, gain, scale, ready + r, r, taps, pad, ring)
+                _filtered_row(frame, offset, gain, scale, ready + r, r, taps, pad,
+                              ring[(ready + r) % ring_n])  # fmt: skip
                 pos = _block_position(ready, factor, hs)
                 r0 = int(math.floor(pos))
                 if r0 != last:  # background rows, upsampled along the row once per block row;
@@ -399,7 +391,7 @@ def detect_frames(
                         _upsample_row(block, col0, col1, colf, upsampled[big % 2])
                     last = r0
                 line = band[ready % band_n]
-                _band_row(ring, taps, ready, upsampled[r0 % 2],
+                _band_row(ring, weights, ready, r, upsampled[r0 % 2],
                           upsampled[min(r0 + 1, hs - 1) % 2], pos - r0, line)  # fmt: skip
                 if a <= ready < b and ready % stride == 0:
                     for q in range(samples.shape[2]):
