@@ -24,7 +24,7 @@ from latentz._shared.engine import resolve_device
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import cut_photons, detect_arrays, roi_windows
+from latentz.detect import cut_photons, detect_arrays
 from latentz.fit.api import FIT_COLUMNS, METHODS, result_table
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.localization.crowding import with_crowding_errors
@@ -114,10 +114,8 @@ def _localize_chunk(
         read, found.rois, (found.row0, found.col0), (found.row, found.col),
         frame_shape=block.shape[-2:], method=method, readnoise=readnoise, device=device,
     )  # fmt: skip
-    half = roi_size // 2
-    windows = roi_windows(done.row0 + half, done.col0 + half, roi_size, block.shape[-2:])[2]
     fit = refit_without_neighbours(
-        done.fit, done.rois, np.column_stack([done.col0, done.row0]), found.frame, windows,
+        done.fit, done.rois, np.column_stack([done.col0, done.row0]), found.frame, done.windows,
         method=method, readnoise=readnoise, device=device,
     )  # fmt: skip
     table = result_table(

@@ -24,14 +24,15 @@ __all__ = ["Recentred", "fit_recentred"]
 
 class Recentred(NamedTuple):
     """Final fits (``x, y`` in full-frame px) and the ROIs they were fitted in: first pixels
-    ``row0, col0``, ``edge`` (clipped to the frame) and the ROIs (n, size, size, photoelectrons,
-    NaN outside the frame)."""
+    ``row0, col0``, ``edge`` (clipped to the frame), the ROIs (n, size, size, photoelectrons,
+    NaN outside the frame) and each ROI's window inside the frame (`latentz.detect.roi_windows`)."""
 
     fit: FitResult
     row0: np.ndarray
     col0: np.ndarray
     edge: np.ndarray
     rois: np.ndarray
+    windows: np.ndarray
 
 
 def fit_recentred(
@@ -80,4 +81,4 @@ def fit_recentred(
     params = fit.params.copy()
     params[:, 0] += new_col0
     params[:, 1] += new_row0
-    return Recentred(fit._replace(params=params), new_row0, new_col0, edge, rois)
+    return Recentred(fit._replace(params=params), new_row0, new_col0, edge, rois, windows)
