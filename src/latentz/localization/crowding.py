@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from latentz.detect import roi_windows
 from latentz.fit._model import N_PARAMS
 from latentz.localization.pairs import crowded
 
@@ -39,14 +40,12 @@ ERROR_COLUMNS = ("x_err", "y_err", "x_err_nm", "y_err_nm", "z_err_nm")
 def seen_pixels(
     x: np.ndarray, y: np.ndarray, roi_size: int, frame_shape: tuple[int, int]
 ) -> np.ndarray:
-    """Pixels of each square ROI of ``roi_size`` centred on the pixel of (``x``, ``y``; px)
-    that lie inside frames of ``frame_shape`` (rows, columns)."""
-    half = roi_size // 2
-    counts = []
-    for centre, size in ((np.rint(y), frame_shape[0]), (np.rint(x), frame_shape[1])):
-        first = np.clip(np.nan_to_num(centre, nan=0.0), 0, size - 1) - half
-        counts.append(np.minimum(first + roi_size, size) - np.maximum(first, 0))
-    return counts[0] * counts[1]
+    """Pixels of each square ROI of ``roi_size`` centred on the pixel of (``x``, ``y``; px; NaN
+    as 0) that lie inside frames of ``frame_shape`` (rows, columns): its window of
+    :func:`latentz.detect.roi_windows`."""
+    rows, cols = (np.nan_to_num(np.rint(v), nan=0.0).astype(np.int64) for v in (y, x))
+    window = roi_windows(rows, cols, roi_size, frame_shape)[2]
+    return (window[:, 1] - window[:, 0]) * (window[:, 3] - window[:, 2])
 
 
 def crowding_factor(table: pd.DataFrame, frame_shape: tuple[int, int]) -> np.ndarray:
