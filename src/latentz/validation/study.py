@@ -33,9 +33,10 @@ def calibrate_defaults(stacks: Any, z_nm: Any, camera: Camera) -> tuple[Calibrat
 def run_defaults(seed: int, size: str = "full") -> dict:
     """One row for draw ``seed`` at ``size``: its settings; what ``calibrate`` chose with no
     shape, ROI or field model given (or ``fails``, the first line of its error); the spots
-    found and in range, z RMSE and its oracle floor (nm, over the spots in range in both),
-    their ratio, x and y RMSE and their floors (nm) and the 1σ coverage of each axis
-    (:func:`~latentz.validation.truth.summary`); seconds taken."""
+    found and in range; z, x and y RMSE (nm) and the 1σ coverage of each axis over every spot in
+    range (:func:`~latentz.validation.truth.summary`); the oracle floor's RMSEs (nm) over the
+    spots in range in both, latentz's z RMSE over those same spots (``z RMSE, floor's spots``)
+    and their ratio; seconds taken."""
     start = time.perf_counter()
     draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
@@ -53,15 +54,18 @@ def run_defaults(seed: int, size: str = "full") -> dict:
     scored = score(data, cal.apply(spots))
     errors = summary(scored)
     try:
-        floor = summary(common_spots(oracle_floor(data, cal, spots,
-                                                  patch_px=FAMILY_SIZES[size]["patch_px"]),
-                                     scored))  # fmt: skip
+        floor_rows = common_spots(oracle_floor(data, cal, spots,
+                                               patch_px=FAMILY_SIZES[size]["patch_px"]),
+                                  scored)  # fmt: skip
+        floor = summary(floor_rows)
+        same = summary(scored.merge(in_range_keys(floor_rows), on=["emitter", "frame"]))
     except ValueError as err:  # the floor's own calibration failed: no floor for this draw
-        floor = {f"rmse_{axis}": float("nan") for axis in "xyz"} | {"spots": 0.0}
+        floor = same = {f"rmse_{axis}": float("nan") for axis in "xyz"} | {"spots": 0.0}
         row["floor fails"] = str(err).splitlines()[0][:160]
     row |= {"spots": int(errors["spots"]), "in range": round(errors["in_range"], 2),
-            "z RMSE": errors["rmse_z"], "floor": floor["rmse_z"],
-            "ratio": errors["rmse_z"] / floor["rmse_z"], "floor spots": int(floor["spots"]),
+            "z RMSE": errors["rmse_z"], "z RMSE, floor's spots": same["rmse_z"],
+            "floor": floor["rmse_z"], "ratio": same["rmse_z"] / floor["rmse_z"],
+            "floor spots": int(floor["spots"]),
             "x RMSE": errors["rmse_x"], "y RMSE": errors["rmse_y"], "floor x": floor["rmse_x"],
             "floor y": floor["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
             "cov z": errors["cover_z"], "fails": ""}  # fmt: skip
@@ -72,5 +76,9 @@ def run_defaults(seed: int, size: str = "full") -> dict:
 def common_spots(floor: pd.DataFrame, scored: pd.DataFrame) -> pd.DataFrame:
     """The floor's rows restricted to the spots that the calibration under test put in range
     (the floor's own in-range flag kept), so that both RMSEs are over the same spots."""
-    kept = scored.loc[scored["in_range"].to_numpy(bool), ["emitter", "frame"]]
-    return floor.merge(kept, on=["emitter", "frame"])
+    return floor.merge(in_range_keys(scored), on=["emitter", "frame"])
+
+
+def in_range_keys(scored: pd.DataFrame) -> pd.DataFrame:
+    """The (emitter, frame) keys of a scored table's spots in range."""
+    return scored.loc[scored["in_range"].to_numpy(bool), ["emitter", "frame"]]
