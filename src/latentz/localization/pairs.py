@@ -137,10 +137,12 @@ def box_pairs(
 def copies(x: np.ndarray, y: np.ndarray, frame: np.ndarray) -> np.ndarray:
     """For each fit (``x, y`` in pixels, ``frame``), the first of its group of fits of one frame
     within `DUPLICATE_PX` of each other (chained): detections whose fits converged on one spot
-    share a group."""
+    share a group. A fit that is not finite is a group of its own."""
     n = len(x)
-    close = cKDTree(_xy_frame(x, y, frame)).query_pairs(DUPLICATE_PX, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(n, n))
+    xy = np.column_stack([x, y])
+    i, j = box_pairs(xy, np.asarray(frame), xy, np.asarray(frame), DUPLICATE_PX)
+    close = (i < j) & (np.hypot(*(xy[i] - xy[j]).T) <= DUPLICATE_PX)
+    graph = coo_matrix((np.ones(close.sum()), (i[close], j[close])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
     return np.unique(label, return_index=True)[1][label]
 
