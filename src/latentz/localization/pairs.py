@@ -98,7 +98,7 @@ def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
     """Which rows have another fit within ``half`` px (x and y; at least `DUPLICATE_PX`) that
     is not the same emitter (more than `DUPLICATE_PX` away): a third emitter the two-emitter
     fit would not model."""
-    xy = table[["x", "y"]].to_numpy(float)
+    xy = np.column_stack([table["x"].to_numpy(float), table["y"].to_numpy(float)])
     frame = table["frame"].to_numpy()
     i, j = box_pairs(xy, frame, xy, frame, half)
     apart = np.hypot(*(xy[i] - xy[j]).T) > DUPLICATE_PX
