@@ -83,3 +83,22 @@ def test_pairs_are_two_rows_near_their_emitters_and_singles_one_row(frames_and_t
     # the closer pairs merge into one detection, or two whose fits converge on one spot: the
     # two-emitter fit made their rows (measured: 34 of the 48 pairs)
     assert split_pairs >= 10, split_pairs
+
+
+def test_box_pairs_are_the_points_of_one_frame_within_the_box():
+    """`box_pairs` finds exactly the pairs that comparing every point with every other finds:
+    the same frame and at most ``half`` px apart in x and in y; points that are not finite have
+    none. Points on a 0.5 px grid put many pairs exactly on the box's edge."""
+    from latentz.localization.pairs import box_pairs
+
+    rng = np.random.default_rng(2)
+    for half in (1.0, 3.5, 7.0):
+        a = rng.integers(0, 60, (300, 2)) / 2.0
+        b = np.concatenate([a[:100] + 0.5, rng.integers(0, 60, (200, 2)) / 2.0])
+        a_frame, b_frame = rng.integers(0, 4, 300), rng.integers(0, 4, 300)
+        a[::17], b[::13, 1] = np.nan, np.inf
+        close = np.all(np.abs(a[:, None] - b[None]) <= half, axis=2)
+        expected = np.argwhere(close & (a_frame[:, None] == b_frame[None]))
+        i, j = box_pairs(a, a_frame, b, b_frame, half)
+        assert sorted(zip(i, j, strict=True)) == sorted(map(tuple, expected)), half
+        assert np.sum(np.abs(a[i] - b[j]).max(axis=1) == half) > 50  # pairs on the edge

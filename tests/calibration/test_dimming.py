@@ -146,7 +146,7 @@ def test_position_shift_moves_a_dim_comatic_emitter_to_where_a_bright_one_is_rea
     for j, axis in enumerate("xy"):
         bright_error = fit.params[:, j] - place[j]  # px: what Δx'(z) holds
         dim_error = dim[:, j] - place[j]
-        shift = position_shift(axis, traces.__getitem__, c_spot, c_own)
+        shift = position_shift(traces.__getitem__, c_spot, c_own)[:, j]
         # 0.01 px = 1.3 nm, against dim-minus-bright differences up to 0.26 px (34 nm)
         assert np.abs(dim_error - shift - bright_error) == pytest.approx(0.0, abs=0.01), axis
         assert np.abs(dim_error - bright_error).max() > 0.1, axis

@@ -7,6 +7,9 @@ from contextlib import contextmanager
 
 import numba
 
+#: Batches of fewer ROIs run the fit kernels (fits, sandwich errors) on one thread.
+SMALL_BATCH = 128
+
 
 @contextmanager
 def one_thread_if(small: bool) -> Iterator[None]:

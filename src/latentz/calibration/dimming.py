@@ -146,19 +146,21 @@ def shape_shift(
 
 
 def position_shift(
-    axis: str,
     traces_at: Callable[[str], np.ndarray],
     c_spot: np.ndarray,
     c_own: np.ndarray,
     c_from: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Bias (n, px) of the fitted ``axis`` ("x" or "y") position of spots of background ratio
-    ``c_spot`` against the calibration's own fit (ratio ``c_own``), from the refits' shifts
-    ``dim{k}_d{axis}`` (:func:`level_shift`; ``traces_at`` as :func:`shape_shift`'s). A PSF
-    that is not symmetric (coma) puts its far wing on one side: where the wings weigh more, the
-    Gaussian's centre moves towards them."""
-    own = np.zeros(np.shape(c_spot))
-    dim = [traces_at(f"dim{k}_d{axis}") for k in range(len(LEVELS))]
+    """Bias (n, 2; px) of the fitted x and y positions of spots of background ratio ``c_spot``
+    against the calibration's own fit (ratio ``c_own``), from the refits' shifts
+    ``dim{k}_dx``, ``dim{k}_dy`` (:func:`level_shift`; ``traces_at`` as :func:`shape_shift`'s).
+    A PSF that is not symmetric (coma) puts its far wing on one side: where the wings weigh
+    more, the Gaussian's centre moves towards them."""
+    own = np.zeros((np.size(c_spot), 2))
+    dim = [
+        np.column_stack([traces_at(f"dim{k}_dx"), traces_at(f"dim{k}_dy")])
+        for k in range(len(LEVELS))
+    ]
     return level_shift(own, dim, traces_at, c_spot, c_own, c_from)
 
 
@@ -170,8 +172,9 @@ def level_shift(
     c_own: np.ndarray,
     c_from: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``v(c_spot) − v(c_from)`` (n,) of a value v whose calibration fit (ratio ``c_own``) gives
-    ``own`` (n,) and whose refits give ``dim`` (one (n,) array per level of :data:`LEVELS`):
+    """``v(c_spot) − v(c_from)`` (n,) or (n, m) of a value v (or m values) whose calibration fit
+    (ratio ``c_own``) gives ``own`` (n,) or (n, m) and whose refits give ``dim`` (one array like
+    ``own`` per level of :data:`LEVELS`):
     v(c) linear in log c between the calibration's own fit and the refits above ``c_own`` (the
     last one's beyond them; NaN where a refit is missing). ``c_from`` (default ``c_own``; never
     below it) is where the correction starts: 0 where ``c_spot ≤ c_from``. A refit's own c is
@@ -191,7 +194,11 @@ def level_shift(
     brighter = ~(level > start[:, None])  # levels the calibration is dimmer than (or unknown)
     knots = np.column_stack([start, np.where(brighter, start[:, None], level)])
     knots = np.maximum.accumulate(knots, axis=1)  # an unknown level between known ones
-    values = np.column_stack([own, np.where(brighter, own[:, None], np.column_stack(dim))])
+    own = np.asarray(own, dtype=np.float64)
+    trailing = (1,) * (own.ndim - 1)  # the m values of each spot share its knots
+    values = np.stack([own, *dim], axis=1)  # (n, levels + 1[, m])
+    values[:, 1:] = np.where(brighter.reshape(brighter.shape + trailing), own[:, None],
+                             values[:, 1:])  # fmt: skip
     rows = np.arange(len(own))
 
     def value(at: np.ndarray) -> np.ndarray:
@@ -200,6 +207,7 @@ def level_shift(
         width = knots[rows, upper] - knots[rows, j]
         with np.errstate(invalid="ignore", divide="ignore"):
             t = np.where(width > 0, (at - knots[rows, j]) / width, 1.0)
-        return values[rows, j] + np.clip(t, 0.0, 1.0) * (values[rows, upper] - values[rows, j])
+        t = np.clip(t, 0.0, 1.0).reshape(t.shape + trailing)
+        return values[rows, j] + t * (values[rows, upper] - values[rows, j])
 
     return value(x) - value(x_from)

@@ -33,6 +33,8 @@ def interp_rows(
     at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Linear interpolation of ``values[rows[k]]`` (on ``z_grid[rows[k]]``) at ``z[k]``;
-    ``at``: :func:`row_weights` of these rows and z, if already known."""
+    ``values`` (n, n_z) or (n, n_z, m): m values read at once, (len(z), m). ``at``:
+    :func:`row_weights` of these rows and z, if already known."""
     rows, j, w = row_weights(z_grid, rows, z) if at is None else at
+    w = w.reshape(w.shape + (1,) * (np.ndim(values) - 2))
     return (1 - w) * values[rows, j - 1] + w * values[rows, j]

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from latentz._shared.engine import resolve_device
-from latentz._shared.threads import one_thread_if
+from latentz._shared.threads import SMALL_BATCH, one_thread_if
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz.camera import Camera
 from latentz.fit import _kernels
@@ -41,8 +41,6 @@ FIT_COLUMNS = (
 )
 _RHO_MAX = 0.95
 _W_MIN = 0.3
-#: Batches of fewer ROIs are fitted on one thread (`one_thread_if`).
-_SMALL_BATCH = 128
 
 
 class FitResult(NamedTuple):
@@ -227,7 +225,7 @@ def _fit_stack(
     else:
         data = np.ascontiguousarray(data, dtype=np.float64)
         # threads take the chunks one at a time: one slowed by other work holds up no other
-        with one_thread_if(n < _SMALL_BATCH), numba.parallel_chunksize(1):
+        with one_thread_if(n < SMALL_BATCH), numba.parallel_chunksize(1):
             _kernels.fit_batch(
                 data, start, use_start, lower, upper, code, s2, max_iter, tol,
                 min(n, 64 * numba.get_num_threads()), *out,

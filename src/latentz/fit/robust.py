@@ -24,6 +24,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from latentz._shared.threads import SMALL_BATCH, one_thread_if
 from latentz.fit._kernels import MLE, _cholesky, _evaluate, _solve, to_internal
 from latentz.fit._model import N_PARAMS, as_param_array
 
@@ -101,13 +102,15 @@ def sandwich_batch(rois: np.ndarray, params: np.ndarray, readnoise: float) -> np
     """(n, 7, 7) sandwich covariance ``A⁻¹ I A⁻¹`` of the Poisson maximum-likelihood fits
     ``params`` (n, 7, natural, ROI pixels) of ``rois`` (n, h, w, photoelectrons), read noise in
     electrons (module notes). NaN where a parameter or pixel is not finite or either matrix is not
-    positive definite (an observed information that is not, at a fit that did not converge)."""
+    positive definite (an observed information that is not, at a fit that did not converge).
+    Fewer than `SMALL_BATCH` ROIs run on one thread: waking the others costs more."""
     rois = np.ascontiguousarray(rois, dtype=np.float64)
     params = np.ascontiguousarray(params, dtype=np.float64)
     out = np.empty((len(params), N_PARAMS, N_PARAMS))
     if len(params):
-        chunks = min(len(params), 64 * numba.get_num_threads())
-        _sandwich_batch(rois, params, float(readnoise) ** 2, chunks, out)
+        with one_thread_if(len(params) < SMALL_BATCH):
+            chunks = min(len(params), 64 * numba.get_num_threads())
+            _sandwich_batch(rois, params, float(readnoise) ** 2, chunks, out)
     return out
 
 

@@ -52,8 +52,11 @@ def crowding_factor(table: pd.DataFrame, frame_shape: tuple[int, int]) -> np.nda
     """Each row's factor (≥ 1) on its position errors: ``sqrt(max(1, χ²/dof) · max(1,
     consistency_chi2 / SHAPE_DOF))``, a χ² that is not finite counting as 1; 1 where the row's
     ROI overlaps no other detection's."""
-    x, y = table["x"].to_numpy(float), table["y"].to_numpy(float)
     roi_size = int(table.attrs["roi_size"])
+    near = crowded(table, roi_size)
+    if not near.any():
+        return np.ones(len(table))
+    x, y = table["x"].to_numpy(float), table["y"].to_numpy(float)
     pixels = seen_pixels(x, y, roi_size, frame_shape)
     paired = table["pair"].to_numpy(np.int64) >= 0 if "pair" in table else np.zeros(len(x), bool)
     dof = pixels - np.where(paired, 2 * N_PARAMS - 1, N_PARAMS)
@@ -61,15 +64,18 @@ def crowding_factor(table: pd.DataFrame, frame_shape: tuple[int, int]) -> np.nda
     with np.errstate(invalid="ignore", divide="ignore"):
         pixel = np.fmax(table["chi2"].to_numpy(float) / dof, 1.0)
         factor = np.sqrt(pixel * np.where(paired, 1.0, np.fmax(shape / SHAPE_DOF, 1.0)))
-    return np.where(crowded(table, roi_size), factor, 1.0)
+    return np.where(near, factor, 1.0)
 
 
 def with_crowding_errors(table: pd.DataFrame, frame_shape: tuple[int, int]) -> pd.DataFrame:
     """``table`` (fits of ROIs of ``table.attrs["roi_size"]`` px in frames of ``frame_shape``,
-    after :func:`.quality.assess`) with its position errors times `crowding_factor`."""
+    after :func:`.quality.assess`) with its position errors times `crowding_factor`; the table
+    itself where every factor is 1."""
     if len(table) == 0:
         return table
     factor = crowding_factor(table, frame_shape)
+    if np.all(factor == 1.0):
+        return table
     out = table.copy()
     for column in ERROR_COLUMNS:
         if column in out:

@@ -16,11 +16,10 @@ Emitters that were not detected stay in the ROI: :mod:`.crowding` puts their bia
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from latentz.fit._model import model_and_jacobian
 from latentz.fit.api import FitResult, fit_arrays, replace_rows
-from latentz.localization.pairs import copies
+from latentz.localization.pairs import box_pairs, copies
 
 __all__ = ["refit_without_neighbours", "neighbour_light", "REACH_PX", "PASSES"]
 
@@ -43,18 +42,14 @@ def neighbour_light(
     h, w = shape
     light = np.zeros((n, h * w))
     usable = np.isfinite(params).all(axis=1)
-    group = copies(params[:, 0], params[:, 1], frame)
-    source = usable & (group == np.arange(n))  # one fit per emitter
     centre = corner + [(w - 1) / 2, (h - 1) / 2]
-    reach = max(h, w) / 2 + REACH_PX
-    gap = 4 * (max(h, w) + REACH_PX)  # frames apart: never within reach
-    own = np.column_stack([centre, frame * gap])
-    others = np.column_stack([params[:, :2], frame * gap])
-    near = cKDTree(others[source]).query_ball_point(own, reach, p=np.inf)
-    into = np.repeat(np.arange(n), [len(rows) for rows in near])
-    src = np.flatnonzero(source)[np.fromiter((j for rows in near for j in rows), np.int64)]
-    keep = group[src] != group[into]
-    into, src = into[keep], src[keep]
+    into, src = box_pairs(centre, frame, params[:, :2], frame, max(h, w) / 2 + REACH_PX)
+    near = usable[src] & (into != src)
+    into, src = into[near], src[near]
+    if into.size:  # one fit per emitter, none of the ROI's own
+        group = copies(params[:, 0], params[:, 1], frame)
+        keep = (group[src] == src) & (group[src] != group[into])
+        into, src = into[keep], src[keep]
     # summed in the order of the neighbours' positions: the same light whatever the rows' order
     order = np.lexsort((params[src, 1], params[src, 0], into))
     into, src = into[order], src[order]

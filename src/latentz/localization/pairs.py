@@ -48,7 +48,9 @@ from latentz.localization.quality import DUPLICATE_PX, assess
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["split_pairs", "copies", "crowded", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS"]
+__all__ = [
+    "split_pairs", "box_pairs", "copies", "crowded", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS",
+]  # fmt: skip
 
 #: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
 PAIR_COLUMNS = ("pair", "merged")
@@ -93,22 +95,54 @@ def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.Dat
 
 
 def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
-    """Which rows have another fit within ``half`` px (x and y) that is not the same emitter
-    (more than `DUPLICATE_PX` away): a third emitter the two-emitter fit would not model."""
-    points = _points(table)
-    tree = cKDTree(points)
-    near = tree.query_ball_point(points, half, p=np.inf, return_length=True)
-    same = tree.query_ball_point(points, DUPLICATE_PX, return_length=True)
-    return near > same
+    """Which rows have another fit within ``half`` px (x and y; at least `DUPLICATE_PX`) that
+    is not the same emitter (more than `DUPLICATE_PX` away): a third emitter the two-emitter
+    fit would not model."""
+    xy = np.column_stack([table["x"].to_numpy(float), table["y"].to_numpy(float)])
+    frame = table["frame"].to_numpy()
+    i, j = box_pairs(xy, frame, xy, frame, half)
+    apart = np.hypot(*(xy[i] - xy[j]).T) > DUPLICATE_PX
+    return np.bincount(i[apart], minlength=len(xy)) > 0
+
+
+def box_pairs(
+    a: np.ndarray, a_frame: np.ndarray, b: np.ndarray, b_frame: np.ndarray, half: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (i, j) of points ``a[i]`` and ``b[j]`` ((n, 2) and (m, 2), x and y in px) of
+    one frame within ``half`` px of each other in x and in y; points that are not finite have
+    none. Found by sorting ``b`` on (frame, x) and reading, for each point of ``a``, the run of
+    ``b`` in its frame within ``half`` in x: no tree, no Python loop."""
+    a_ok = np.flatnonzero(np.isfinite(a).all(axis=1))
+    b_ok = np.flatnonzero(np.isfinite(b).all(axis=1))
+    if a_ok.size == 0 or b_ok.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    # one sort key: the frames laid end to end along x, each wider than its points and reach
+    x0 = min(a[a_ok, 0].min(), b[b_ok, 0].min())
+    width = max(a[a_ok, 0].max(), b[b_ok, 0].max()) - x0 + 2 * half + 2
+    f0 = min(a_frame[a_ok].min(), b_frame[b_ok].min())
+    key_b = (b_frame[b_ok] - f0) * width + (b[b_ok, 0] - x0)
+    order = np.argsort(key_b, kind="stable")
+    key_b, b_sorted = key_b[order], b_ok[order]
+    key_a = (a_frame[a_ok] - f0) * width + (a[a_ok, 0] - x0)
+    margin = half + 1.0  # more than the key's rounding; the exact test follows
+    lo = np.searchsorted(key_b, key_a - margin, side="left")
+    count = np.searchsorted(key_b, key_a + margin, side="right") - lo
+    i = np.repeat(a_ok, count)
+    run_start = np.repeat(lo - (np.cumsum(count) - count), count)
+    j = b_sorted[run_start + np.arange(count.sum())]
+    keep = (a_frame[i] == b_frame[j]) & np.all(np.abs(a[i] - b[j]) <= half, axis=1)
+    return i[keep], j[keep]
 
 
 def copies(x: np.ndarray, y: np.ndarray, frame: np.ndarray) -> np.ndarray:
     """For each fit (``x, y`` in pixels, ``frame``), the first of its group of fits of one frame
     within `DUPLICATE_PX` of each other (chained): detections whose fits converged on one spot
-    share a group."""
+    share a group. A fit that is not finite is a group of its own."""
     n = len(x)
-    close = cKDTree(_xy_frame(x, y, frame)).query_pairs(DUPLICATE_PX, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(n, n))
+    xy = np.column_stack([x, y])
+    i, j = box_pairs(xy, np.asarray(frame), xy, np.asarray(frame), DUPLICATE_PX)
+    close = (i < j) & (np.hypot(*(xy[i] - xy[j]).T) <= DUPLICATE_PX)
+    graph = coo_matrix((np.ones(close.sum()), (i[close], j[close])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
     return np.unique(label, return_index=True)[1][label]
 
