@@ -770,14 +770,43 @@ class Calibration:
         ρ corrected for the spots' background ratio (:meth:`_dimming_shift` of each) at the
         first readout's z."""
         joint = self.joint_readout(spots, p)
-        if "background" in spots.columns and "dim0_wx" in self.traces.data:
-            background = spots["background"].to_numpy(float)
-            shift = np.column_stack([
-                self._dimming_shift(cols["amplitude"], background, p, joint.z_nm, ref,
-                                    of=lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k])
-                for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+        shift = self._shape_params_shift(spots, cols, p, joint.z_nm, ref)
+        if shift is not None:
             joint = self.joint_readout(spots, p, shift)
         return self._shape_at(p, joint.z_nm), joint
+
+    def _shape_params_shift(self, spots: pd.DataFrame, cols: dict, p: np.ndarray, z: np.ndarray,
+                            ref: np.ndarray) -> np.ndarray | None:  # fmt: skip
+        """(n, 3) brightness shift of the spots' fitted wx, wy, ρ on particles ``p`` at z (nm)
+        (:meth:`_dimming_shift` of each), or None where the calibration has no dimmed refits
+        or the spots no background."""
+        if "background" not in spots.columns or "dim0_wx" not in self.traces.data:
+            return None
+        background = spots["background"].to_numpy(float)
+        return np.column_stack([
+            self._dimming_shift(cols["amplitude"], background, p, z, ref,
+                                of=lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k])
+            for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+
+    def _past_turn(self, spots: pd.DataFrame, cols: dict, p: np.ndarray, z: np.ndarray,
+                   ref: np.ndarray) -> np.ndarray:  # fmt: skip
+        """(n,) spots read at z (nm) from their one shape value whose fitted wx, wy, ρ lie
+        nearest their particle's curves outside the monotonic range of its inverse z(s): the
+        joint search over all the particle's planes (:meth:`joint_readout`, brightness-corrected
+        at z) puts them beyond it. Past the range's end the shape value turns back (far from
+        focus a high-NA PSF's fitted widths stop growing, or the ROI cuts the spot off), so a
+        spot from there has the shape value of one inside it; its widths and ρ together tell
+        the two apart."""
+        out = np.zeros(z.size, dtype=bool)
+        found = np.isfinite(z)
+        if not found.any():
+            return out
+        shift = self._shape_params_shift(spots, cols, p, z, ref)
+        joint = self.joint_readout(spots, p, shift)
+        lo, hi = self.local.shapes[self.shape].z_range[p].T
+        with np.errstate(invalid="ignore"):
+            out[found] = ((joint.z_nm < lo) | (joint.z_nm > hi))[found]
+        return out
 
     def _shape_at(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """The shape value whose inverse z(s) of particle ``p`` gives ``z`` (nm): Newton steps
@@ -843,8 +872,10 @@ class Calibration:
             A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm, in_range and
             cal_particle (index of the calibration particle used). Outside that particle's
             calibrated range (its monotonic range, or widths over :data:`BEYOND_WIDTH` times
-            its curves' at the z read: a spot beyond the range whose shape value mimics one
-            inside it), z_nm and the corrected positions are NaN and in_range is False.
+            its curves' at the z read, or, with the one shape value, fitted wx, wy, ρ nearest
+            its curves beyond that range (:meth:`_past_turn`): a spot beyond the range whose
+            shape value mimics one inside it), z_nm and the corrected positions are NaN and
+            in_range is False.
         """
         check_columns("spots", spots, SPOT_COLUMNS)
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
@@ -871,6 +902,8 @@ class Calibration:
                                         z, ref)  # fmt: skip
             z, shifts, in_range = self._locate(s, p, cols, located)
         in_range &= ~self._beyond_range(cols, p, z)
+        if joint is None:
+            in_range &= ~self._past_turn(spots, cols, p, np.where(in_range, z, np.nan), ref)
         z = np.where(in_range, z, np.nan)
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
