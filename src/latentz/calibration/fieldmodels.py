@@ -45,6 +45,7 @@ from scipy.sparse import csr_matrix
 from scipy.spatial import Delaunay, QhullError, cKDTree
 from scipy.stats import kurtosis
 
+from latentz._shared.threads import one_blas_thread
 from latentz._shared.validate import check_array, check_choice, check_int, check_positive
 from latentz._shared.zernike import (
     field_to_disk,
@@ -123,6 +124,15 @@ def _conflicts(tri, centres, radii2, queries, start):
     return np.concatenate(found_q), np.concatenate(found_t)
 
 
+def _delaunay(points: np.ndarray) -> Delaunay:
+    """The Delaunay triangulation of ``points`` (n, 2) with its barycentric transforms, which
+    ``find_simplex`` needs, computed at once on one BLAS thread."""
+    tri = Delaunay(points)
+    with one_blas_thread():
+        tri.transform  # noqa: B018 (computed and cached on first access)
+    return tri
+
+
 def _natural_weights(points: np.ndarray, queries: np.ndarray):
     """Sibson (natural-neighbour) coordinates of queries, by Watson's signed decomposition.
 
@@ -140,7 +150,7 @@ def _natural_weights(points: np.ndarray, queries: np.ndarray):
     if len(points) < 3:
         return none
     try:
-        tri = Delaunay(points)
+        tri = _delaunay(points)
     except QhullError:  # all particles on a line: no triangle, no interpolant
         return none
     start = tri.find_simplex(queries) if n_q else np.zeros(0, int)
@@ -212,7 +222,7 @@ def _curves_weights(points: np.ndarray, queries: np.ndarray):
     (the nearest particle where there is no hull: fewer than 3 particles, or all collinear)."""
     if len(points) >= 3 and len(queries):
         try:
-            tri = Delaunay(points)
+            tri = _delaunay(points)
         except QhullError:
             tri = None
         if tri is not None:
