@@ -798,14 +798,16 @@ class Calibration:
         spot from there has the shape value of one inside it; its widths and ρ together tell
         the two apart."""
         out = np.zeros(z.size, dtype=bool)
-        found = np.isfinite(z)
-        if not found.any():
+        found = np.flatnonzero(np.isfinite(z))
+        if found.size == 0:
             return out
-        shift = self._shape_params_shift(spots, cols, p, z, ref)
+        spots, p = spots.iloc[found], p[found]
+        cols = {name: values[found] for name, values in cols.items()}
+        shift = self._shape_params_shift(spots, cols, p, z[found], ref[found])
         joint = self.joint_readout(spots, p, shift)
         lo, hi = self.local.shapes[self.shape].z_range[p].T
         with np.errstate(invalid="ignore"):
-            out[found] = ((joint.z_nm < lo) | (joint.z_nm > hi))[found]
+            out[found] = (joint.z_nm < lo) | (joint.z_nm > hi)
         return out
 
     def _shape_at(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
