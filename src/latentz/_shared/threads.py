@@ -31,7 +31,6 @@ def one_thread_if(small: bool) -> Iterator[None]:
         numba.set_num_threads(before)
 
 
-
 @functools.cache
 def _blas() -> ThreadpoolController:
     """The process's thread pools, found once (after numpy's and scipy's BLAS are loaded)."""

@@ -133,7 +133,7 @@ def _delaunay(points: np.ndarray) -> Delaunay:
     return tri
 
 
-def _natural_weights(points: np.ndarray, queries: np.ndarray):
+def _natural_weights(points: np.ndarray, queries: np.ndarray, tri: Delaunay | None = None):
     """Sibson (natural-neighbour) coordinates of queries, by Watson's signed decomposition.
 
     Inserting a query ``q`` into the Delaunay triangulation removes the triangles whose
@@ -143,14 +143,15 @@ def _natural_weights(points: np.ndarray, queries: np.ndarray):
     terms meet on Voronoi edges of ``a``. Normalised, these areas are Sibson's coordinates
     (Watson, Comput. Geosci. 18, 1992; Sibson, 1981). Outside the convex hull the interpolant is
     undefined; at a particle it is that particle's value. Checked against MetPy's
-    ``natural_neighbor_to_points`` in the tests.
+    ``natural_neighbor_to_points`` in the tests. ``tri``: the points' :func:`_delaunay`, if
+    already made.
     """
     n_q = len(queries)
     none = (np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(n_q, dtype=bool))
     if len(points) < 3:
         return none
     try:
-        tri = _delaunay(points)
+        tri = _delaunay(points) if tri is None else tri
     except QhullError:  # all particles on a line: no triangle, no interpolant
         return none
     start = tri.find_simplex(queries) if n_q else np.zeros(0, int)
@@ -226,7 +227,7 @@ def _curves_weights(points: np.ndarray, queries: np.ndarray):
         except QhullError:
             tri = None
         if tri is not None:
-            pi, pj, w, ok = _natural_weights(points, _onto_hull(points, queries, tri))
+            pi, pj, w, ok = _natural_weights(points, _onto_hull(points, queries, tri), tri)
             if ok.all():
                 return pi, pj, w, ok
             # a point exactly on a Delaunay edge: its nearest particle

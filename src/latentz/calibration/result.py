@@ -645,20 +645,18 @@ class Calibration:
 
     def _dimming_shift(
         self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
-        ref: np.ndarray, of: Callable[..., np.ndarray] | None = None,
+        ref: np.ndarray,
     ) -> np.ndarray:  # fmt: skip
         """How much brighter-than-the-spot calibration images shift the spots' shape values
-        (:func:`~latentz.calibration.dimming.shape_shift`; ``of(amplitude, wx, wy, rho)``, if
-        given, in place of the shape value), from particle ``p``'s refits at the spots' z
-        (:meth:`_dimming_terms`); 0 where that is unknown."""
+        (:func:`~latentz.calibration.dimming.shape_shift`), from particle ``p``'s refits at the
+        spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
         from latentz.calibration.dimming import shape_shift
 
         def shape_of(a, wx, wy, rho):
             return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
                                amplitude_ref=ref)  # fmt: skip
 
-        terms = self._dimming_terms(amplitude, background, p, z)
-        shift = shape_shift(of or shape_of, *terms)
+        shift = shape_shift(shape_of, *self._dimming_terms(amplitude, background, p, z))
         return np.where(np.isfinite(shift), shift, 0.0)
 
     def _position_shifts(
@@ -763,33 +761,35 @@ class Calibration:
                     for k in SHAPE_PARAMS])  # fmt: skip
         return self._cache["usable_scatter"]
 
-    def _joint_shape(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
-                     ref: np.ndarray) -> tuple[np.ndarray, JointZ]:  # fmt: skip
+    def _joint_shape(self, spots: pd.DataFrame, cols: dict,
+                     p: np.ndarray) -> tuple[np.ndarray, JointZ]:  # fmt: skip
         """The joint readout of ``spots`` and the shape value of its z (:meth:`_shape_at`).
         Where the calibration has dimmed refits, the readout is repeated with the fitted wx, wy,
-        ρ corrected for the spots' background ratio (:meth:`_dimming_shift` of each) at the
+        ρ corrected for the spots' background ratio (:meth:`_shape_params_shift`) at the
         first readout's z."""
         joint = self.joint_readout(spots, p)
-        shift = self._shape_params_shift(spots, cols, p, joint.z_nm, ref)
+        shift = self._shape_params_shift(spots, cols, p, joint.z_nm)
         if shift is not None:
             joint = self.joint_readout(spots, p, shift)
         return self._shape_at(p, joint.z_nm), joint
 
-    def _shape_params_shift(self, spots: pd.DataFrame, cols: dict, p: np.ndarray, z: np.ndarray,
-                            ref: np.ndarray) -> np.ndarray | None:  # fmt: skip
+    def _shape_params_shift(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
+                            z: np.ndarray) -> np.ndarray | None:  # fmt: skip
         """(n, 3) brightness shift of the spots' fitted wx, wy, ρ on particles ``p`` at z (nm)
-        (:meth:`_dimming_shift` of each), or None where the calibration has no dimmed refits
-        or the spots no background."""
+        (:func:`~latentz.calibration.dimming.shape_shift` of each, from one read of
+        :meth:`_dimming_terms`; 0 where unknown), or None where the calibration has no dimmed
+        refits or the spots no background."""
+        from latentz.calibration.dimming import shape_shift
+
         if "background" not in spots.columns or "dim0_wx" not in self.traces.data:
             return None
-        background = spots["background"].to_numpy(float)
-        return np.column_stack([
-            self._dimming_shift(cols["amplitude"], background, p, z, ref,
-                                of=lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k])
-            for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+        terms = self._dimming_terms(cols["amplitude"], spots["background"].to_numpy(float), p, z)
+        shift = np.column_stack([shape_shift(lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k], *terms)
+                                 for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+        return np.where(np.isfinite(shift), shift, 0.0)
 
-    def _past_turn(self, spots: pd.DataFrame, cols: dict, p: np.ndarray, z: np.ndarray,
-                   ref: np.ndarray) -> np.ndarray:  # fmt: skip
+    def _past_turn(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
+                   z: np.ndarray) -> np.ndarray:  # fmt: skip
         """(n,) spots read at z (nm) from their one shape value whose fitted wx, wy, ρ lie
         nearest their particle's curves outside the monotonic range of its inverse z(s): the
         joint search over all the particle's planes (:meth:`joint_readout`, brightness-corrected
@@ -803,7 +803,7 @@ class Calibration:
             return out
         spots, p = spots.iloc[found], p[found]
         cols = {name: values[found] for name, values in cols.items()}
-        shift = self._shape_params_shift(spots, cols, p, z[found], ref[found])
+        shift = self._shape_params_shift(spots, cols, p, z[found])
         joint = self.joint_readout(spots, p, shift)
         lo, hi = self.local.shapes[self.shape].z_range[p].T
         with np.errstate(invalid="ignore"):
@@ -893,7 +893,7 @@ class Calibration:
         ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
         joint = None
         if z_readout == "joint":
-            s, joint = self._joint_shape(spots, cols, p, ref)
+            s, joint = self._joint_shape(spots, cols, p)
             ref_scatter = 0.0  # z does not use the amplitude
         else:
             s = shape_value(shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
@@ -905,7 +905,7 @@ class Calibration:
             z, shifts, in_range = self._locate(s, p, cols, located)
         in_range &= ~self._beyond_range(cols, p, z)
         if joint is None:
-            in_range &= ~self._past_turn(spots, cols, p, np.where(in_range, z, np.nan), ref)
+            in_range &= ~self._past_turn(spots, cols, p, np.where(in_range, z, np.nan))
         z = np.where(in_range, z, np.nan)
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)

@@ -38,7 +38,6 @@ import numpy as np
 import pandas as pd
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from latentz.fit._model import PARAMS, photons_of
 from latentz.fit.api import CORRELATION_COLUMNS, ERROR_COLUMNS
@@ -60,7 +59,6 @@ WIDTH_MADS = 5.0
 #: A one-emitter fit whose Pearson chi-square exceeds its degrees of freedom (pixels − 7) by
 #: this many of its standard deviations fits poorly: only those can hold two emitters.
 CHI2_SDS = 3.0
-_FRAME_GAP = 1e4  # pixels between frames in `_points`
 
 
 def long_axis_width(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -98,8 +96,7 @@ def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
     """Which rows have another fit within ``half`` px (x and y; at least `DUPLICATE_PX`) that
     is not the same emitter (more than `DUPLICATE_PX` away): a third emitter the two-emitter
     fit would not model."""
-    xy = np.column_stack([table["x"].to_numpy(float), table["y"].to_numpy(float)])
-    frame = table["frame"].to_numpy()
+    xy, frame = _xy(table), table["frame"].to_numpy()
     i, j = box_pairs(xy, frame, xy, frame, half)
     apart = np.hypot(*(xy[i] - xy[j]).T) > DUPLICATE_PX
     return np.bincount(i[apart], minlength=len(xy)) > 0
@@ -277,9 +274,13 @@ def _detected_apart(table: pd.DataFrame, members: pd.DataFrame, group: np.ndarra
     fitted by itself."""
     if len(members) == 0:
         return np.zeros(0, bool)
-    near = cKDTree(_points(table)).query_ball_point(_points(members), DUPLICATE_PX)
+    at, fits = _xy(members), _xy(table)
+    i, j = box_pairs(at, members["frame"].to_numpy(), fits, table["frame"].to_numpy(),
+                     DUPLICATE_PX)  # fmt: skip
+    close = np.hypot(*(at[i] - fits[j]).T) <= DUPLICATE_PX
+    i, j = i[close], j[close]
     own = group[members["pair"].to_numpy()]
-    other = np.array([np.any(group[rows] != g) for rows, g in zip(near, own, strict=True)])
+    other = np.bincount(i[group[j] != own[i]], minlength=len(members)) > 0
     return other[0::2] | other[1::2]
 
 
@@ -291,16 +292,9 @@ def _in_frame(fit: PairFit, rois: np.ndarray) -> np.ndarray:
     return np.isfinite(rois[np.arange(n)[:, None], y, x]).all(axis=1)
 
 
-def _points(rows: pd.DataFrame) -> np.ndarray:
-    """`_xy_frame` of a table's ``x, y, frame``."""
-    return _xy_frame(*(rows[c].to_numpy(float) for c in ("x", "y", "frame")))
-
-
-def _xy_frame(x: np.ndarray, y: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """x, y (pixels) and the frame times `_FRAME_GAP`: rows of other frames never within
-    reach; a position that is not finite lies far from all."""
-    points = np.column_stack([x, y, np.asarray(frame, float) * _FRAME_GAP])
-    return np.nan_to_num(points, nan=-1e12, posinf=-1e12, neginf=-1e12)
+def _xy(rows: pd.DataFrame) -> np.ndarray:
+    """(n, 2) x, y (pixels) of a table's rows."""
+    return np.column_stack([rows["x"].to_numpy(float), rows["y"].to_numpy(float)])
 
 
 def _take(fit: PairFit, rows: np.ndarray) -> PairFit:
