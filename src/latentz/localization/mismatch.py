@@ -53,19 +53,25 @@ if TYPE_CHECKING:
 __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 
 #: Rotation (degrees) of the spots' astigmatism axis against the calibration's beyond which the
-#: calibration is blamed: right calibrations give within ±2° (1–2 standard errors), one whose
-#: astigmatism lies 45° off gives 43–44°.
+#: calibration is blamed: right calibrations give within ±1.5° (1–2 standard errors) on
+#: microscopes of 20–90 nm RMS astigmatism and on the high-NA family draws 17 and 19, one whose
+#: astigmatism lies 45° off gives 43–44°. Very weak astigmatism (3–8 nm RMS, widths within
+#: 0.93–1.08 of each other over ±400 nm) is not held: there the dim molecules' ellipticity
+#: (|E| ≈ 0.05) points elsewhere than the beads', 6–45° on 4 right calibrations, 3 of them
+#: condemned (benchmarks/bench_wrong_calibration.py).
 AXIS_LIMIT_DEG = 10.0
-#: The spots' log width ratio (at the calibration's photons) above which they are wider than a
-#: right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.049 to
-#: +0.014 (±0.004–0.014) on random microscopes at 0.5–1.5 molecules per µm²; another pixel size
-#: (1.25x) gives +0.062 to +0.090 (benchmarks/bench_wrong_calibration.py,
-#: tests/pipeline/test_verdicts_truth.py).
+#: The spots' log width ratio (at the calibration's brightness) above which they are wider than
+#: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
+#: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
+#: against point emitters on the high-NA family draws 17 and 19 (their default calibrations and
+#: test frames, full and ci size) −0.008 to +0.005 (±0.002–0.015); another pixel size (1.25x)
+#: gives +0.074 to +0.075 (benchmarks/bench_wrong_calibration.py).
 LOG_WIDTH_LIMIT = 0.04
 #: Blur (σ, nm) by which the spots' widths may fall short of the calibration's: 100 nm beads
-#: against point molecules of 10³–10⁴ photons give −13 to +37 nm (±2–20 nm) on 12 random
-#: microscopes, a calibration at 1.2x the wavelength 58–69 nm on 6 (strongly and weakly
-#: astigmatic; benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm sphere.
+#: against point molecules of 10³–10⁴ photons give +30 to +39 nm (±1–3 nm) on 8 random
+#: microscopes of 20–90 nm RMS astigmatism, point particles on the high-NA family draws 17 and
+#: 19 −19 nm; a calibration at 1.2x the wavelength gives +64 to +74 nm on those 8
+#: (benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm sphere.
 BLUR_LIMIT_NM = 50.0
 #: Change of a spot's log mean width per unit of log photons, for calibrations without dimmed
 #: refits only (files written before them): dim spots fit narrower with a scalar PSF (the
@@ -74,7 +80,9 @@ BLUR_LIMIT_NM = 50.0
 #: instead (family draws 17 and 19, oil NA 1.47 and 1.49), which the refits measure.
 PHOTON_SLOPE = 0.035
 #: Standard errors by which a measurement must lie beyond its limit to blame the calibration
-#: (the limits lie 2.4 or more standard errors beyond every right calibration measured).
+#: (the width limits lie 1.3 or more standard errors beyond every right calibration measured:
+#: the least, the blur of family draw 19's 22 spots at the ci size, −361 ± 2250 nm² against
+#: the limit's 2500 nm²).
 SIGNIFICANCE = 1.0
 #: Fewest checked spots that measure anything.
 MIN_SPOTS = 20
