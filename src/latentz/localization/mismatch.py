@@ -9,7 +9,7 @@ z readout cannot absorb are measured over the table's converged, unique, located
   as :func:`~latentz.calibration.shape.astigmatism_angle` uses it) against that of the
   calibration's own trace points. Each angle's standard error comes from resampling its spots or
   trace points, so a weakly astigmatic calibration (round images, a poorly known axis) or few
-  dim spots widen it;
+  dim spots widen it (not enough for very weak astigmatism: :data:`AXIS_LIMIT_DEG`);
 - **the widths**, each spot's carried to its calibration particle's brightness by the
   calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
   this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
@@ -63,15 +63,16 @@ AXIS_LIMIT_DEG = 10.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
 #: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
-#: against point emitters on the high-NA family draws 17 and 19 (their default calibrations and
-#: test frames, full and ci size) −0.008 to +0.005 (±0.002–0.015); another pixel size (1.25x)
-#: gives +0.074 to +0.075 (benchmarks/bench_wrong_calibration.py).
+#: (draw 17) and 161 nm beads (draw 19) against point emitters on the high-NA family draws (their
+#: default calibrations and test frames, full and ci size) −0.008 to +0.005 (±0.002–0.015);
+#: another pixel size (1.25x) gives +0.074 to +0.078 (benchmarks/bench_wrong_calibration.py).
 LOG_WIDTH_LIMIT = 0.04
 #: Blur (σ, nm) by which the spots' widths may fall short of the calibration's: 100 nm beads
 #: against point molecules of 10³–10⁴ photons give +30 to +39 nm (±1–3 nm) on 8 random
-#: microscopes of 20–90 nm RMS astigmatism, point particles on the high-NA family draws 17 and
-#: 19 −19 nm; a calibration at 1.2x the wavelength gives +64 to +74 nm on those 8
-#: (benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm sphere.
+#: microscopes of 20–90 nm RMS astigmatism; on the high-NA family draws 17 (point particles) and
+#: 19 (161 nm beads, whose blur is 35 nm) ±19 nm; a calibration at 1.2x the wavelength gives +64
+#: to +74 nm on 12 (benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm
+#: sphere.
 BLUR_LIMIT_NM = 50.0
 #: Change of a spot's log mean width per unit of log photons, for calibrations without dimmed
 #: refits only (files written before them): dim spots fit narrower with a scalar PSF (the
@@ -81,7 +82,7 @@ BLUR_LIMIT_NM = 50.0
 PHOTON_SLOPE = 0.035
 #: Standard errors by which a measurement must lie beyond its limit to blame the calibration
 #: (the width limits lie 1.3 or more standard errors beyond every right calibration measured:
-#: the least, the blur of family draw 19's 22 spots at the ci size, −361 ± 2250 nm² against
+#: the least, the blur of family draw 19's 22 spots at the ci size, −377 ± 2250 nm² against
 #: the limit's 2500 nm²).
 SIGNIFICANCE = 1.0
 #: Fewest checked spots that measure anything.
@@ -169,7 +170,7 @@ def _curve_widths(cal: Calibration, p: np.ndarray, z: np.ndarray) -> tuple[np.nd
     return (cx + cy) / 2, (cx**2 + cy**2) / 2 * cal.camera.pixel_size_nm**2
 
 
-def _carried_curves(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+def _held_out_differences(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
     """How far each spot's particle's curves at its z may lie from the truth at the spot's
     place, as held-out particles show it: the log ratio of the particle's mean widths over its
     nearest other kept particle's, and the difference of their mean squared widths (nm²), each
@@ -192,10 +193,10 @@ def _carried_curves(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, 
 def _calibration_se(table: pd.DataFrame, cal: Calibration) -> tuple[float, float]:
     """Standard errors that the calibration's own curves add to the spots' median log width
     ratio and blur (nm²): a particle's curves err alike for every spot near it, so each
-    particle's median of :func:`_carried_curves` over its spots, weighted by its share of the
+    particle's median of :func:`_held_out_differences` over its spots, weighted by its share of the
     spots, in quadrature."""
     particle = table["cal_particle"].to_numpy(int)
-    by_particle = pd.DataFrame(dict(zip(("log", "square"), _carried_curves(table, cal),
+    by_particle = pd.DataFrame(dict(zip(("log", "square"), _held_out_differences(table, cal),
                                         strict=True))).groupby(particle)  # fmt: skip
     weighted = by_particle.median() * by_particle.size().to_numpy()[:, None] / particle.size
     return tuple(float(v) for v in np.sqrt((weighted**2).sum()))
