@@ -1,6 +1,7 @@
 """The wrong-calibration test against truth: its statistic on right and on wrong calibrations.
 
-For one random astigmatic microscope with strong (50-90 nm RMS) and one with weak (20-30 nm RMS)
+For one random astigmatic microscope with strong (50-90 nm RMS), one with weak (20-30 nm RMS)
+and one with very weak (3-8 nm RMS: widths within 0.93-1.08 of each other over ±400 nm)
 astigmatism (:func:`latentz.simulate.molecules.random_microscope`), molecules of 1,000-10,000
 photons within ±400 nm at 0.5 per µm² are localized with calibrations made, with defaults, on
 simulated 100 nm beads (:func:`latentz.validation.molecules.bead_calibration`) of: the same
@@ -35,7 +36,8 @@ from latentz.validation.molecules import (
     wrong_microscopes,
 )
 
-MICROSCOPES = {"strong": (11, (50.0, 90.0)), "weak": (12, (20.0, 30.0))}
+MICROSCOPES = {"strong": (11, (50.0, 90.0)), "weak": (12, (20.0, 30.0)),
+               "very weak": (13, (3.0, 8.0))}  # fmt: skip
 
 
 #: The calibrations that the ``--right`` microscopes get.

@@ -209,6 +209,17 @@ class Calibration:
             out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
         return out
 
+    def shapes_at_particle_brightness(self, located: pd.DataFrame) -> np.ndarray | None:
+        """(n, 3) fitted wx, wy (px) and ρ of spots that :meth:`apply` located (their
+        ``cal_particle`` and ``z_nm``) less the brightness shift its dimmed refits measure
+        (:meth:`_shape_params_shift`): the shapes their particle's own fit would show at their
+        z, comparable with :meth:`curves_at`; None where the calibration has no dimmed refits
+        or the spots no ``background``."""
+        cols = {"amplitude": located["amplitude"].to_numpy(float)}
+        shift = self._shape_params_shift(located, cols, located["cal_particle"].to_numpy(int),
+                                         located["z_nm"].to_numpy(float))  # fmt: skip
+        return None if shift is None else located[list(SHAPE_PARAMS)].to_numpy(float) - shift
+
     @property
     def tilt_mrad(self) -> float:
         """Nutation of the substrate normal from the optical axis, mrad."""

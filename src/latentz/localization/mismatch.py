@@ -9,10 +9,12 @@ z readout cannot absorb are measured over the table's converged, unique, located
   as :func:`~latentz.calibration.shape.astigmatism_angle` uses it) against that of the
   calibration's own trace points. Each angle's standard error comes from resampling its spots or
   trace points, so a weakly astigmatic calibration (round images, a poorly known axis) or few
-  dim spots widen it;
-- **the widths**, each spot's carried to the calibration particles' photons along
-  :data:`PHOTON_SLOPE` (dim spots fit narrower: the Gaussian sees less of the PSF's wings),
-  against the calibration's at the spot's z, two ways: the median log ratio of the mean widths
+  dim spots widen it (not enough for very weak astigmatism: :data:`AXIS_LIMIT_DEG`);
+- **the widths**, each spot's carried to its calibration particle's brightness by the
+  calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
+  this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
+  to microscope), against the calibration's at the spot's z, two ways: the median log ratio
+  of the mean widths
   (another pixel size scales every width up or down), and the median **blur**, the calibration's
   squared widths less the spot's (nm², the mean over x and y), read as the σ of a blur: a
   particle's image is the PSF blurred by the particle (σ = 0.22 × its diameter for a sphere,
@@ -20,6 +22,10 @@ z readout cannot absorb are measured over the table's converged, unique, located
   it by that blur however wide the astigmatism makes both. A calibration made at a longer
   wavelength falls short by far more (about 60 nm at 1.2x), where a width ratio is diluted
   by the astigmatic spread of strongly astigmatic images.
+
+Each width measurement's standard error holds the spots' scatter and the calibration's own
+uncertainty: a spot is compared with its nearest particle's curves, which stand for the spot's
+place only as well as neighbouring particles agree (:func:`_calibration_se`).
 
 The calibration is blamed when the axis lies more than :data:`AXIS_LIMIT_DEG` off, the log width
 ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond :data:`BLUR_LIMIT_NM`, by more than
@@ -36,6 +42,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import pandas as pd
+from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import warn
 from latentz.calibration.shape import ellipticity
@@ -46,27 +53,37 @@ if TYPE_CHECKING:
 __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 
 #: Rotation (degrees) of the spots' astigmatism axis against the calibration's beyond which the
-#: calibration is blamed: right calibrations give within ±2° (1–2 standard errors), one whose
-#: astigmatism lies 45° off gives 43–44°.
+#: calibration is blamed: right calibrations give within ±1.5° (1–2 standard errors) on
+#: microscopes of 20–90 nm RMS astigmatism and on the high-NA family draws 17 and 19, one whose
+#: astigmatism lies 45° off gives 43–44°. Very weak astigmatism (3–8 nm RMS, widths within
+#: 0.93–1.08 of each other over ±400 nm) is not held: there the dim molecules' ellipticity
+#: (|E| ≈ 0.05) points elsewhere than the beads', 6–45° on 4 right calibrations, 3 of them
+#: condemned (benchmarks/bench_wrong_calibration.py).
 AXIS_LIMIT_DEG = 10.0
-#: The spots' log width ratio (at the calibration's photons) above which they are wider than a
-#: right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.049 to
-#: +0.014 (±0.004–0.014) on random microscopes at 0.5–1.5 molecules per µm²; another pixel size
-#: (1.25x) gives +0.062 to +0.090 (benchmarks/bench_wrong_calibration.py,
-#: tests/pipeline/test_verdicts_truth.py).
+#: The spots' log width ratio (at the calibration's brightness) above which they are wider than
+#: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
+#: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
+#: (draw 17) and 161 nm beads (draw 19) against point emitters on the high-NA family draws (their
+#: default calibrations and test frames, full and ci size) −0.008 to +0.005 (±0.002–0.015);
+#: another pixel size (1.25x) gives +0.074 to +0.078 (benchmarks/bench_wrong_calibration.py).
 LOG_WIDTH_LIMIT = 0.04
 #: Blur (σ, nm) by which the spots' widths may fall short of the calibration's: 100 nm beads
-#: against point molecules of 10³–10⁴ photons give −13 to +37 nm (±2–20 nm) on 12 random
-#: microscopes, a calibration at 1.2x the wavelength 58–69 nm on 6 (strongly and weakly
-#: astigmatic; benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm sphere.
+#: against point molecules of 10³–10⁴ photons give +30 to +39 nm (±1–3 nm) on 8 random
+#: microscopes of 20–90 nm RMS astigmatism; on the high-NA family draws 17 (point particles) and
+#: 19 (161 nm beads, whose blur is 35 nm) ±19 nm; a calibration at 1.2x the wavelength gives +64
+#: to +74 nm on 12 (benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm
+#: sphere.
 BLUR_LIMIT_NM = 50.0
-#: Change of a spot's log mean width per unit of log photons: dim spots fit narrower (the
-#: Gaussian sees less of the PSF's wings). Measured 0.018–0.068, median 0.035, on the right and
-#: wrong calibrations of benchmarks/bench_wrong_calibration.py (0.5 molecules per µm²); fixed,
-#: since in crowded frames merged neighbours make the brightest spots wide and steepen a fit.
+#: Change of a spot's log mean width per unit of log photons, for calibrations without dimmed
+#: refits only (files written before them): dim spots fit narrower with a scalar PSF (the
+#: Gaussian sees less of its wings), 0.018–0.068, median 0.035, on the microscopes of
+#: benchmarks/bench_wrong_calibration.py; the vectorial PSF of a high-NA objective fits wider
+#: instead (family draws 17 and 19, oil NA 1.47 and 1.49), which the refits measure.
 PHOTON_SLOPE = 0.035
 #: Standard errors by which a measurement must lie beyond its limit to blame the calibration
-#: (the limits lie 2.4 or more standard errors beyond every right calibration measured).
+#: (the width limits lie 1.3 or more standard errors beyond every right calibration measured:
+#: the least, the blur of family draw 19's 22 spots at the ci size, −377 ± 2250 nm² against
+#: the limit's 2500 nm²).
 SIGNIFICANCE = 1.0
 #: Fewest checked spots that measure anything.
 MIN_SPOTS = 20
@@ -131,19 +148,73 @@ def _median(values: np.ndarray) -> tuple[float, float]:
     return centre, 1.2533 * spread / np.sqrt(values.size)
 
 
-def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float, float]:
-    """The spots' median log mean-width ratio over the calibration at their z and their
-    median blur (nm², the calibration's squared widths less the spot's, mean of x and y), each
-    with its standard error; every spot's widths carried to the calibration particles' median
-    photons along :data:`PHOTON_SLOPE`."""
-    z = table["z_nm"].to_numpy(float)
-    curves = cal.curves_at(table["cal_particle"].to_numpy(int), z)
+def _carried_widths(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """The spots' |wx|, |wy| (px) as their calibration particle's own, brighter fit would show
+    them at their z: less the shift that the calibration's dimmed refits measure at each spot's
+    brightness (:meth:`~latentz.calibration.Calibration.shapes_at_particle_brightness`); for a
+    calibration without dimmed refits, or spots without a background, carried to the particles'
+    median photons along :data:`PHOTON_SLOPE`."""
+    shapes = cal.shapes_at_particle_brightness(table)
+    if shapes is not None:
+        return np.abs(shapes[:, 0]), np.abs(shapes[:, 1])
     reference = np.log(np.nanmedian(cal.traces["photons"][cal.kept]))
     carry = np.exp(PHOTON_SLOPE * (reference - np.log(table["photons"].to_numpy(float))))
-    wx, wy = (carry * np.abs(table[c].to_numpy(float)) for c in ("wx", "wy"))
+    return carry * np.abs(table["wx"].to_numpy(float)), carry * np.abs(table["wy"].to_numpy(float))
+
+
+def _curve_widths(cal: Calibration, p: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean width (px) and mean squared width (nm², of x and y) of particles ``p``'s curves at
+    ``z`` (nm)."""
+    curves = cal.curves_at(p, z)
     cx, cy = np.abs(curves["wx"]), np.abs(curves["wy"])
-    blur = (cx**2 + cy**2 - wx**2 - wy**2) / 2 * cal.camera.pixel_size_nm**2
-    return (*_median(np.log((wx + wy) / (cx + cy))), *_median(blur))
+    return (cx + cy) / 2, (cx**2 + cy**2) / 2 * cal.camera.pixel_size_nm**2
+
+
+def _held_out_differences(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """How far each spot's particle's curves at its z may lie from the truth at the spot's
+    place, as held-out particles show it: the log ratio of the particle's mean widths over its
+    nearest other kept particle's, and the difference of their mean squared widths (nm²), each
+    scaled by the spot's distance from its particle over theirs; zeros with one kept
+    particle."""
+    p, z = table["cal_particle"].to_numpy(int), table["z_nm"].to_numpy(float)
+    if cal.kept.size < 2:
+        return np.zeros(z.size), np.zeros(z.size)
+    kept_xy = cal.positions[cal.kept]
+    spacing, nearest = cKDTree(kept_xy).query(kept_xy, k=2)
+    row = np.searchsorted(cal.kept, p)  # p is a kept particle: its row in kept_xy
+    q = cal.kept[nearest[row, 1]]
+    xy = table[["x", "y"]].to_numpy(float)
+    scale = np.hypot(*(xy - cal.positions[p]).T) / spacing[row, 1]
+    mean_p, square_p = _curve_widths(cal, p, z)
+    mean_q, square_q = _curve_widths(cal, q, z)
+    return scale * np.log(mean_p / mean_q), scale * (square_p - square_q)
+
+
+def _calibration_se(table: pd.DataFrame, cal: Calibration) -> tuple[float, float]:
+    """Standard errors that the calibration's own curves add to the spots' median log width
+    ratio and blur (nm²): a particle's curves err alike for every spot near it, so each
+    particle's median of :func:`_held_out_differences` over its spots, weighted by its share of the
+    spots, in quadrature."""
+    particle = table["cal_particle"].to_numpy(int)
+    by_particle = pd.DataFrame(dict(zip(("log", "square"), _held_out_differences(table, cal),
+                                        strict=True))).groupby(particle)  # fmt: skip
+    weighted = by_particle.median() * by_particle.size().to_numpy()[:, None] / particle.size
+    return tuple(float(v) for v in np.sqrt((weighted**2).sum()))
+
+
+def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float, float]:
+    """The spots' median log mean-width ratio over the calibration at their z and their
+    median blur (nm², the calibration's mean squared width less the spot's), each with its
+    standard error, the spots' and the calibration's own (:func:`_calibration_se`) in
+    quadrature; every spot's widths carried to its particle's brightness
+    (:func:`_carried_widths`)."""
+    wx, wy = _carried_widths(table, cal)
+    mean, square = _curve_widths(cal, table["cal_particle"].to_numpy(int),
+                                 table["z_nm"].to_numpy(float))  # fmt: skip
+    log_width, log_se = _median(np.log((wx + wy) / 2 / mean))
+    blur, blur_se = _median(square - (wx**2 + wy**2) / 2 * cal.camera.pixel_size_nm**2)
+    log_se, blur_se = np.hypot((log_se, blur_se), _calibration_se(table, cal))
+    return log_width, float(log_se), blur, float(blur_se)
 
 
 def calibration_mismatch(table: pd.DataFrame, calibration: Calibration) -> Mismatch:
