@@ -34,7 +34,7 @@ from latentz.localization.mismatch import check_calibration_fits
 from latentz.localization.neighbours import refit_without_neighbours
 from latentz.localization.pairs import PAIR_COLUMNS, split_pairs
 from latentz.localization.quality import assess
-from latentz.localization.recentre import fit_recentred
+from latentz.localization.recentre import fit_recentred, on_calibration_pixels
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -93,8 +93,10 @@ def _localize_chunk(
     pairs: bool = False,
 ) -> pd.DataFrame:
     """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"); ``x, y`` in
-    full-frame pixels. With ``pairs``, close pairs are fitted as two emitters
-    (:mod:`latentz.localization.pairs`, what one emitter looks like from ``calibration``)."""
+    full-frame pixels. With a ``calibration``, spots it reads far from focus are fitted again
+    in its ROI convention (:func:`~latentz.localization.recentre.on_calibration_pixels`). With
+    ``pairs``, close pairs are fitted as two emitters (:mod:`latentz.localization.pairs`, what
+    one emitter looks like from ``calibration``)."""
     block = np.asarray(block)  # as stored: both devices convert to photoelectrons themselves
     if device == "cuda":
         from latentz.detect._cuda import detect_arrays_cuda as detect_on_device
@@ -114,6 +116,9 @@ def _localize_chunk(
         read, found.rois, (found.row0, found.col0), (found.row, found.col),
         frame_shape=block.shape[-2:], method=method, readnoise=readnoise, device=device,
     )  # fmt: skip
+    if calibration is not None:
+        done = on_calibration_pixels(done, read, calibration, frame_shape=block.shape[-2:],
+                                     method=method, readnoise=readnoise, device=device)  # fmt: skip
     fit = refit_without_neighbours(
         done.fit, done.rois, np.column_stack([done.col0, done.row0]), found.frame, done.windows,
         method=method, readnoise=readnoise, device=device,

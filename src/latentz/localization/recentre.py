@@ -12,14 +12,20 @@ final fit, in its own ROI.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from latentz.detect import roi_windows
-from latentz.fit.api import FitResult, fit_arrays, replace_rows, with_sandwich
+from latentz.fit.api import FitResult, fit_arrays, replace_rows, result_table, with_sandwich
 
-__all__ = ["Recentred", "fit_recentred"]
+if TYPE_CHECKING:
+    from latentz.calibration.result import Calibration
+
+__all__ = ["SHIFT_PX", "Recentred", "fit_recentred", "on_calibration_pixels"]
+
+#: Lateral shift (px) beyond which :func:`on_calibration_pixels` fits a spot again on its place.
+SHIFT_PX = 0.5
 
 
 class Recentred(NamedTuple):
@@ -66,14 +72,10 @@ def fit_recentred(
     new_row0, new_col0, windows, edge = roi_windows(rows, cols, size, frame_shape)
     moved = (new_row0 != row0) | (new_col0 != col0)
     if moved.any():
-        again = read(moved, new_row0[moved], new_col0[moved])
-        start = None
-        if init is not None:
-            start = fit.params[moved].copy()
-            start[:, 0] += col0[moved] - new_col0[moved]
-            start[:, 1] += row0[moved] - new_row0[moved]
-        refit = fit_arrays(again, method=method, readnoise=readnoise, init=start,
-                           windows=windows[moved], device=device)  # fmt: skip
+        refit, again = _fit_again(
+            read, moved, fit, (row0, col0), (new_row0, new_col0), windows, method=method,
+            readnoise=readnoise, device=device, from_fit=init is not None,
+        )  # fmt: skip
         fit = replace_rows(fit, refit, moved)
         rois = rois.copy()
         rois[moved] = again
@@ -82,3 +84,87 @@ def fit_recentred(
     params[:, 0] += new_col0
     params[:, 1] += new_row0
     return Recentred(fit._replace(params=params), new_row0, new_col0, edge, rois, windows)
+
+
+def on_calibration_pixels(
+    done: Recentred,
+    read: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    calibration: Calibration,
+    *,
+    frame_shape: tuple[int, int],
+    method: str,
+    readnoise: float,
+    device: str = "auto",
+) -> Recentred:
+    """``done`` with each spot that ``calibration`` moves by more than :data:`SHIFT_PX` (its
+    lateral shift Δx′(z), Δy′(z) at the z it reads) fitted again in the ROI centred on its
+    corrected place, where calibration's ROI sat on the particle at that z; the rest as they
+    were. A defocused spot that fills its ROI fits narrower or wider as the ROI moves, so it is
+    read against the calibration's images only from the calibration's ROI. Below half a pixel
+    both ROIs lie within a pixel of the place. Spots whose new ROI would be clipped by the
+    frame's edge keep their fit; the new fits start from the old, with sandwich errors."""
+    size = done.rois.shape[-1]
+    table = result_table(done.fit)
+    table.attrs["roi_size"] = size
+    located = calibration.apply(table)
+    px = calibration.camera.pixel_size_nm
+    x, y = done.fit.params[:, 0], done.fit.params[:, 1]
+    place_x, place_y = located["x_nm"].to_numpy() / px, located["y_nm"].to_numpy() / px
+    with np.errstate(invalid="ignore"):
+        far = np.maximum(np.abs(x - place_x), np.abs(y - place_y)) > SHIFT_PX
+    far &= located["in_range"].to_numpy(bool)
+    half = size // 2
+    rows = np.where(far, np.rint(place_y), done.row0 + half).astype(np.int64)
+    cols = np.where(far, np.rint(place_x), done.col0 + half).astype(np.int64)
+    new_row0, new_col0, windows, edge = roi_windows(rows, cols, size, frame_shape)
+    moved = far & ~edge & ((new_row0 != done.row0) | (new_col0 != done.col0))
+    if not moved.any():
+        return done
+    local = done.fit.params.copy()
+    local[:, 0] -= done.col0
+    local[:, 1] -= done.row0
+    refit, again = _fit_again(
+        read, moved, done.fit._replace(params=local), (done.row0, done.col0),
+        (new_row0, new_col0), windows, method=method, readnoise=readnoise, device=device,
+        from_fit=True,
+    )  # fmt: skip
+    refit = with_sandwich(refit, again, method=method, readnoise=readnoise,
+                          windows=windows[moved])  # fmt: skip
+    params = refit.params.copy()
+    params[:, 0] += new_col0[moved]
+    params[:, 1] += new_row0[moved]
+    rois = done.rois.copy()
+    rois[moved] = again
+    return Recentred(
+        replace_rows(done.fit, refit._replace(params=params), moved),
+        np.where(moved, new_row0, done.row0), np.where(moved, new_col0, done.col0),
+        done.edge, rois, np.where(moved[:, None], windows, done.windows),
+    )  # fmt: skip
+
+
+def _fit_again(
+    read: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    moved: np.ndarray,
+    fit: FitResult,
+    old: tuple[np.ndarray, np.ndarray],
+    new: tuple[np.ndarray, np.ndarray],
+    windows: np.ndarray,
+    *,
+    method: str,
+    readnoise: float,
+    device: str,
+    from_fit: bool,
+) -> tuple[FitResult, np.ndarray]:
+    """The rows ``moved`` fitted in their ROIs at first pixels ``new = (row0, col0)``, read
+    with ``read``, from ``fit`` (ROI px of the ROIs at ``old``) carried to the new ROIs when
+    ``from_fit``, else from the moment start; and those ROIs."""
+    row0, col0 = new[0][moved], new[1][moved]
+    again = read(moved, row0, col0)
+    start = None
+    if from_fit:
+        start = fit.params[moved].copy()
+        start[:, 0] += old[1][moved] - col0
+        start[:, 1] += old[0][moved] - row0
+    refit = fit_arrays(again, method=method, readnoise=readnoise, init=start,
+                       windows=windows[moved], device=device)  # fmt: skip
+    return refit, again
