@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from scipy import ndimage
 
+from latentz._shared.medians import row_medians
 from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_int, check_positive
 from latentz.camera import Camera
@@ -180,23 +181,12 @@ def noise_level(filtered: np.ndarray) -> float:
 
 
 def _noise_levels(samples: np.ndarray) -> np.ndarray:
-    """`noise_level` of each frame's strided sample ``samples[t]`` (any shape): 1.4826 x MAD.
-
-    The values of every frame are sorted at once, as stored (float32: NumPy's vectorised sort
-    of 65 000 of them takes a fifth of the time of its median's selection in float64; the order
-    is the same), and the middle ones read in float64, as ``np.median`` reads them."""
-    values = np.sort(samples.reshape(len(samples), -1), axis=1).astype(np.float64)
-    centre = _middle(values)
-    return _MAD_TO_SIGMA * _middle(np.sort(np.abs(values - centre[:, None]), axis=1))
-
-
-def _middle(ordered: np.ndarray) -> np.ndarray:
-    """The median of each row of ``ordered`` (rows sorted ascending), as ``np.median``: the
-    middle value, or the mean of the two middle values of an even count."""
-    half = ordered.shape[1] // 2
-    if ordered.shape[1] % 2:
-        return ordered[:, half]
-    return (ordered[:, half - 1] + ordered[:, half]) / 2
+    """`noise_level` of each frame's strided sample ``samples[t]`` (any shape): 1.4826 x MAD,
+    the medians by sorting (:func:`~latentz._shared.medians.row_medians`; the samples sorted as
+    stored, in float32)."""
+    values = samples.reshape(len(samples), -1)
+    centre = row_medians(values)
+    return _MAD_TO_SIGMA * row_medians(np.abs(values.astype(np.float64) - centre[:, None]))
 
 
 def edge_noise_gain(n: int, weights: np.ndarray) -> np.ndarray:
