@@ -13,9 +13,9 @@ __all__ = ["row_medians"]
 
 
 def row_medians(values: np.ndarray) -> np.ndarray:
-    """``np.median`` of each row of ``values`` (2-D), the same numbers: each row sorted in its own
-    type and its middle value, or the mean of its two middle values for an even count, read in
-    float64."""
+    """``np.median`` of each row of ``values`` (2-D) taken in float64, the same numbers: each row
+    sorted in its own type (the order is the float64 copy's) and its middle value, or the mean
+    of its two middle values for an even count, read in float64."""
     ordered = np.sort(values, axis=1)
     half = ordered.shape[1] // 2
     if ordered.shape[1] % 2:
