@@ -99,18 +99,21 @@ def joint_z(
     p: np.ndarray,
     fitted: np.ndarray,
     cov: np.ndarray,
+    *,
+    z_only: bool = False,
 ) -> JointZ:
     """The joint readout (module notes) of spots with fitted (wx, wy, ρ) ``fitted`` (n, 3) and
     their covariance ``cov`` (n, 3, 3) on particles ``p`` (n,): ``curves_at(particle, z)`` gives
     the particles' curves (:meth:`~latentz.calibration.result.Calibration.curves_at`),
     ``z_grid`` (particles, planes) their planes (nm) and ``scatter`` (particles, 3) the RMS
-    scatter of their wx, wy, ρ about them (NaN: none)."""
+    scatter of their wx, wy, ρ about them (NaN: none). With ``z_only``, σ and the spread are
+    not computed (NaN)."""
     n = len(p)
     out = [np.full(n, np.nan) for _ in range(3)]
     for start in range(0, n, _CHUNK):
         part = slice(start, start + _CHUNK)
         found = _search(curves_at, z_grid, p[part], fitted[part], cov[part] + _diagonal(
-            scatter[p[part]]))  # fmt: skip
+            scatter[p[part]]), z_only)  # fmt: skip
         for whole, piece in zip(out, found, strict=True):
             whole[part] = piece
     return JointZ(*out)
@@ -136,8 +139,9 @@ def _weights(total: np.ndarray) -> np.ndarray:
     return weight
 
 
-def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
-    """z, σ and spread of one chunk of spots (:func:`joint_z`), ``cov`` = C_fit + C_curve."""
+def _search(curves_at, z_grid, p, fitted, cov, z_only: bool = False) -> tuple[np.ndarray, ...]:
+    """z, σ and spread of one chunk of spots (:func:`joint_z`), ``cov`` = C_fit + C_curve;
+    with ``z_only``, z alone (σ and spread NaN)."""
     grid = z_grid[p]
     weight = _weights(cov)
     r = fitted[:, None, :] - _curves(curves_at, p[:, None], grid)
@@ -149,6 +153,10 @@ def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
     # d² at z itself: at the best plane, up to half a step off z, it also counts that step
     r = fitted - _curves(curves_at, p, z)
     best = np.fmin(np.einsum("mi,mij,mj->m", r, weight, r), d2[rows, k])
+    found = np.isfinite(best)
+    if z_only:
+        nothing = np.full(len(p), np.nan)
+        return np.where(found, z, np.nan), nothing, nothing
     scale = np.where(best > CHI2_HELD, best / 2, 1.0)  # curves that do not hold the spot
     step = np.median(np.diff(grid, axis=1), axis=1)
     slope = (_curves(curves_at, p, z + step / 2) - _curves(curves_at, p, z - step / 2)) / step[
@@ -158,7 +166,6 @@ def _search(curves_at, z_grid, p, fitted, cov) -> tuple[np.ndarray, ...]:
         sigma = np.sqrt(scale / np.einsum("mi,mij,mj->m", slope, weight, slope))
         within = d2 < (best + scale)[:, None]
         spread = np.max(np.where(within, np.abs(grid - z[:, None]), 0.0), axis=1)
-    found = np.isfinite(best)
     return tuple(np.where(found, v, np.nan) for v in (z, sigma, spread))
 
 

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz._shared.columns import with_columns
 from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.dimming import background_ratio
@@ -55,6 +56,8 @@ SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
 Z_READOUTS = ("joint", "shape")
 _ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
 _PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
+#: The columns :meth:`Calibration.apply` reads as arrays, where a table has them.
+_READ_COLUMNS = (*_PARAMS, *_ERROR_COLUMNS, *CORRELATION_COLUMNS, "x_err", "y_err")
 #: A spot whose mean width is more than this many times its particle's curves at its z lies
 #: beyond the particle's monotonic range: there the shape value returns to values inside the
 #: range while the widths keep growing. The quality verdict's χ² (10 % curve scatter, limit
@@ -203,9 +206,10 @@ class Calibration:
         curves = self._cache["curves"]
         p = np.asarray(particle, dtype=int)
         z = np.asarray(z_nm, dtype=np.float64)
+        at = row_weights(self.local.z_nm, p, z)  # where the three curves are read
         out = {}
         for name in ("wx", "wy", "rho"):
-            out[name] = interp_rows(self.local.z_nm, curves[name], p, z)
+            out[name] = interp_rows(self.local.z_nm, curves[name], p, z, at)
             out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
         return out
 
@@ -741,22 +745,24 @@ class Calibration:
         return self.kept[idx]
 
     def joint_readout(
-        self, spots: pd.DataFrame, p: np.ndarray, shift: np.ndarray | None = None
-    ) -> JointZ:
-        """The joint readout (:func:`~latentz.calibration.readout.joint_z`) of ``spots`` on
-        their particles ``p``, weighted by the covariance of their fits (:func:`~latentz.
+        self, cols: dict[str, np.ndarray], p: np.ndarray, shift: np.ndarray | None = None,
+        *, z_only: bool = False,
+    ) -> JointZ:  # fmt: skip
+        """The joint readout (:func:`~latentz.calibration.readout.joint_z`, ``z_only`` as
+        there) of spots on their particles ``p``, from their columns ``cols``
+        (:func:`_spot_arrays`), weighted by the covariance of their fits (:func:`~latentz.
         calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr`` columns where
         they carry them) times :attr:`noise_scale` squared; ``shift`` (n, 3), if given, is
         taken off their fitted wx, wy, ρ."""
-        params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
+        params = _stacked(cols, _PARAMS)
         errors = corr = None
-        if all(c in spots.columns for c in _ERROR_COLUMNS):
-            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
-            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
+        if all(c in cols for c in _ERROR_COLUMNS):
+            errors, corr = _stacked(cols, _ERROR_COLUMNS), _stacked(cols, CORRELATION_COLUMNS)
         cov = self.noise_scale**2 * shape_covariance(params, errors, corr, roi_size=self.roi_size,
                                                      readnoise=self.camera.readnoise)  # fmt: skip
         fitted = params[:, 4:7] if shift is None else params[:, 4:7] - shift
-        return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov)
+        return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov,
+                       z_only=z_only)  # fmt: skip
 
     def _usable_scatter(self) -> np.ndarray:
         """(n, 3) RMS scatter of each particle's wx, wy, ρ traces about its curves
@@ -772,50 +778,48 @@ class Calibration:
                     for k in SHAPE_PARAMS])  # fmt: skip
         return self._cache["usable_scatter"]
 
-    def _joint_shape(self, spots: pd.DataFrame, cols: dict,
-                     p: np.ndarray) -> tuple[np.ndarray, JointZ]:  # fmt: skip
-        """The joint readout of ``spots`` and the shape value of its z (:meth:`_shape_at`).
-        Where the calibration has dimmed refits, the readout is repeated with the fitted wx, wy,
-        ρ corrected for the spots' background ratio (:meth:`_shape_params_shift`) at the
-        first readout's z."""
-        joint = self.joint_readout(spots, p)
-        shift = self._shape_params_shift(spots, cols, p, joint.z_nm)
+    def _joint_shape(self, cols: dict, p: np.ndarray) -> tuple[np.ndarray, JointZ]:
+        """The joint readout of the spots of columns ``cols`` and the shape value of its z
+        (:meth:`_shape_at`). Where the calibration has dimmed refits, the readout is repeated
+        with the fitted wx, wy, ρ corrected for the spots' background ratio
+        (:meth:`_shape_params_shift`) at the first readout's z."""
+        joint = self.joint_readout(cols, p)
+        shift = self._shape_params_shift(cols, p, joint.z_nm)
         if shift is not None:
-            joint = self.joint_readout(spots, p, shift)
+            joint = self.joint_readout(cols, p, shift)
         return self._shape_at(p, joint.z_nm), joint
 
-    def _shape_params_shift(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
+    def _shape_params_shift(self, cols: dict, p: np.ndarray,
                             z: np.ndarray) -> np.ndarray | None:  # fmt: skip
-        """(n, 3) brightness shift of the spots' fitted wx, wy, ρ on particles ``p`` at z (nm)
-        (:func:`~latentz.calibration.dimming.shape_shift` of each, from one read of
-        :meth:`_dimming_terms`; 0 where unknown), or None where the calibration has no dimmed
-        refits or the spots no background."""
+        """(n, 3) brightness shift of the fitted wx, wy, ρ of the spots of columns ``cols`` on
+        particles ``p`` at z (nm) (:func:`~latentz.calibration.dimming.shape_shift` of each, from
+        one read of :meth:`_dimming_terms`; 0 where unknown), or None where the calibration has
+        no dimmed refits or the spots no background."""
         from latentz.calibration.dimming import shape_shift
 
-        if "background" not in spots.columns or "dim0_wx" not in self.traces.data:
+        if "background" not in cols or "dim0_wx" not in self.traces.data:
             return None
-        terms = self._dimming_terms(cols["amplitude"], spots["background"].to_numpy(float), p, z)
+        terms = self._dimming_terms(cols["amplitude"], cols["background"], p, z)
         shift = np.column_stack([shape_shift(lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k], *terms)
                                  for k in range(len(SHAPE_PARAMS))])  # fmt: skip
         return np.where(np.isfinite(shift), shift, 0.0)
 
-    def _past_turn(self, spots: pd.DataFrame, cols: dict, p: np.ndarray,
-                   z: np.ndarray) -> np.ndarray:  # fmt: skip
-        """(n,) spots read at z (nm) from their one shape value whose fitted wx, wy, ρ lie
-        nearest their particle's curves outside the monotonic range of its inverse z(s): the
-        joint search over all the particle's planes (:meth:`joint_readout`, brightness-corrected
-        at z) puts them beyond it. Past the range's end the shape value turns back (far from
-        focus a high-NA PSF's fitted widths stop growing, or the ROI cuts the spot off), so a
-        spot from there has the shape value of one inside it; its widths and ρ together tell
-        the two apart."""
+    def _past_turn(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(n,) spots (columns ``cols``) read at z (nm) from their one shape value whose fitted
+        wx, wy, ρ lie nearest their particle's curves outside the monotonic range of its inverse
+        z(s): the joint search over all the particle's planes (:meth:`joint_readout`,
+        brightness-corrected at z) puts them beyond it. Past the range's end the shape value
+        turns back (far from focus a high-NA PSF's fitted widths stop growing, or the ROI cuts
+        the spot off), so a spot from there has the shape value of one inside it; its widths
+        and ρ together tell the two apart."""
         out = np.zeros(z.size, dtype=bool)
         found = np.flatnonzero(np.isfinite(z))
         if found.size == 0:
             return out
-        spots, p = spots.iloc[found], p[found]
+        p = p[found]
         cols = {name: values[found] for name, values in cols.items()}
-        shift = self._shape_params_shift(spots, cols, p, z[found])
-        joint = self.joint_readout(spots, p, shift)
+        shift = self._shape_params_shift(cols, p, z[found])
+        joint = self.joint_readout(cols, p, shift, z_only=True)
         lo, hi = self.local.shapes[self.shape].z_range[p].T
         with np.errstate(invalid="ignore"):
             out[found] = (joint.z_nm < lo) | (joint.z_nm > hi)
@@ -892,11 +896,11 @@ class Calibration:
         """
         check_columns("spots", spots, SPOT_COLUMNS)
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
-        check_widths(spots[["wx", "wy"]].to_numpy(dtype=np.float64), self.width_range_px)
+        cols = _spot_arrays(spots)
+        check_widths(np.column_stack([cols["wx"], cols["wy"]]), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         check_choice("z_readout", z_readout, Z_READOUTS)
         shape = self.shape
-        cols = {c: spots[c].to_numpy(dtype=np.float64) for c in SPOT_COLUMNS}
         # a spot with any non-finite fit value is a broken fit: never in range
         located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
@@ -904,32 +908,30 @@ class Calibration:
         ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
         joint = None
         if z_readout == "joint":
-            s, joint = self._joint_shape(spots, cols, p)
+            s, joint = self._joint_shape(cols, p)
             ref_scatter = 0.0  # z does not use the amplitude
         else:
             s = shape_value(shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
                             theta=self.local.theta, amplitude_ref=ref)  # fmt: skip
         z, shifts, in_range = self._locate(s, p, cols, located)
-        if joint is None and "background" in spots.columns and "dim0_wx" in self.traces.data:
-            s = s - self._dimming_shift(cols["amplitude"], spots["background"].to_numpy(float), p,
-                                        z, ref)  # fmt: skip
+        if joint is None and "background" in cols and "dim0_wx" in self.traces.data:
+            s = s - self._dimming_shift(cols["amplitude"], cols["background"], p, z, ref)
             z, shifts, in_range = self._locate(s, p, cols, located)
         in_range &= ~self._beyond_range(cols, p, z)
         if joint is None:
-            in_range &= ~self._past_turn(spots, cols, p, np.where(in_range, z, np.nan))
+            in_range &= ~self._past_turn(cols, p, np.where(in_range, z, np.nan))
         z = np.where(in_range, z, np.nan)
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
-        out, px = spots.copy(), self.camera.pixel_size_nm
+        out, px = {}, self.camera.pixel_size_nm
         dimmed = None  # the spot's own brightness moves its fitted centre (coma)
-        if "background" in spots.columns and "dim0_dx" in self.traces.data:
-            background = spots["background"].to_numpy(float)
-            dimmed = self._position_shifts(cols["amplitude"], background, p, z)
+        if "background" in cols and "dim0_dx" in self.traces.data:
+            dimmed = self._position_shifts(cols["amplitude"], cols["background"], p, z)
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
             if dimmed is not None:
                 shift = shift + dimmed[axis]
-            err = self._lateral_error(axis, spots, p, z, in_range, at, z_err, distance)
+            err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
             out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
@@ -940,7 +942,7 @@ class Calibration:
             out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
         out["in_range"] = in_range
         out["cal_particle"] = p
-        return out
+        return with_columns(spots, out)
 
     def _beyond_range(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """(n,) spots at z (nm) on particles ``p`` whose mean fitted width (``cols``' wx, wy,
@@ -1034,7 +1036,7 @@ class Calibration:
     def _lateral_error(
         self,
         axis: str,
-        spots: pd.DataFrame,
+        cols: dict,
         p: np.ndarray,
         z: np.ndarray,
         in_range: np.ndarray,
@@ -1042,21 +1044,34 @@ class Calibration:
         z_err: np.ndarray,
         distance: np.ndarray,
     ) -> np.ndarray:
-        """σ of the corrected ``axis`` position (nm): the spot's own, the particle's model
-        error and lack of fit, σ_z through the particle's correction
-        (:func:`~latentz.calibration.errors.through_z` over its span), and the field model's."""
+        """σ of the corrected ``axis`` position (nm) of the spots of columns ``cols``: the
+        spot's own, the particle's model error and lack of fit, σ_z through the particle's
+        correction (:func:`~latentz.calibration.errors.through_z` over its span), and the field
+        model's."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
         from_z = through_z(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
         model_d = self._model_sigma(axis, p, z, at)
-        if f"{axis}_err" in spots:
-            own = spots[f"{axis}_err"].to_numpy(float)
+        if f"{axis}_err" in cols:
+            own = cols[f"{axis}_err"]
         else:
             own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
         return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
+
+
+def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The spots' columns that :meth:`Calibration.apply` reads (:data:`_READ_COLUMNS`, those
+    the table has) as float64 arrays, each read once."""
+    return {c: spots[c].to_numpy(dtype=np.float64) for c in _READ_COLUMNS if c in spots.columns}
+
+
+def _stacked(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray:
+    """(n, len(names)) of the arrays ``cols`` under ``names``, NaN for a name it lacks."""
+    n = len(cols["x"])
+    return np.column_stack([cols[name] if name in cols else np.full(n, np.nan) for name in names])
 
 
 def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:

@@ -20,8 +20,8 @@ filtered vertically, minus the background read back bilinearly) goes into a seco
 their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
 
 The threshold is not known while the rows pass: the pass writes the band-passed frame at the
-strided pixels of :func:`latentz.detect.noise_level` (`noise_levels` takes their robust spread
-afterwards) and keeps the maxima above a lower floor, from a rough noise level of the task's
+strided pixels of :func:`latentz.detect.noise_level` (their robust spread is taken afterwards,
+in NumPy) and keeps the maxima above a lower floor, from a rough noise level of the task's
 pixels on a sparse grid (`_rough_noise`), unless the noise is given.
 
 The maxima of one wide spot are merged afterwards, on one thread (a few dozen per frame: waking
@@ -211,15 +211,6 @@ def _background_row(
         for j in range(out.shape[0]):
             out[j] += wk * src[j]
     return made
-
-
-@numba.njit(parallel=True, cache=True)
-def noise_levels(samples, mad_to_sigma, out):
-    """``out[t]``: 1.4826 x median absolute deviation of ``samples[t]`` (any shape)."""
-    for t in numba.prange(samples.shape[0]):
-        values = samples[t].ravel().astype(np.float64)
-        centre = np.median(values)
-        out[t] = mad_to_sigma * np.median(np.abs(values - centre))
 
 
 #: Pixels apart of the second differences of `_rough_noise`.

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from scipy import ndimage
 
+from latentz._shared.medians import row_medians
 from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_int, check_positive
 from latentz.camera import Camera
@@ -177,6 +178,15 @@ def noise_level(filtered: np.ndarray) -> float:
         values = values[::step, ::step]
     values = values.ravel()
     return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
+
+
+def _noise_levels(samples: np.ndarray) -> np.ndarray:
+    """`noise_level` of each frame's strided sample ``samples[t]`` (any shape): 1.4826 x MAD,
+    the medians by sorting (:func:`~latentz._shared.medians.row_medians`; the samples sorted as
+    stored, in float32)."""
+    values = samples.reshape(len(samples), -1)
+    centre = row_medians(values)
+    return _MAD_TO_SIGMA * row_medians(np.abs(values.astype(np.float64) - centre[:, None]))
 
 
 def edge_noise_gain(n: int, weights: np.ndarray) -> np.ndarray:
@@ -498,9 +508,7 @@ def _streamed(
     known = np.full(n, np.nan) if noise is None else threshold * noise
     floors, maxima = _pass(chunk, known, threshold, min_distance, samples)
     if noise is None:
-        noise = np.empty(n)
-        _k.noise_levels(samples, _MAD_TO_SIGMA, noise)
-        noise = _usable_noise(noise)
+        noise = _usable_noise(_noise_levels(samples))
     limits = (threshold * noise).astype(np.float32)
     if np.any(floors > np.repeat(limits, len(floors) // n)):
         floors, maxima = _pass(chunk, limits, threshold, min_distance, samples)

@@ -250,7 +250,8 @@ def _far_deviance(roi, s2, mu_ref, w_ref, mu, weight):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, grad, full=True):
+def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, grad, full=True,
+              hessian=True):
     """Objective at internal parameters ``p``, with ``hess`` and ``grad`` for the next step.
 
     Returns ``(objective with the reference weights, objective with the weights at p)``; they
@@ -266,7 +267,8 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     constant factor (`_row_start`), wherever no value of the row falls below ``exp(-600)``.
 
     With ``full`` False only ``mu_out`` and ``w_out`` are written (for every method), and
-    ``(0, 0)`` is returned.
+    ``(0, 0)`` is returned; with ``hessian`` False, ``hess`` is not (the score alone: a quarter
+    of the per-pixel sums).
     """
     h, w = roi.shape
     x = p[0]
@@ -362,6 +364,8 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
             g4 += j4 * res
             g5 += j5 * res
             g6 += j6 * res
+            if not hessian:
+                continue
             w0 = wt * j0
             w1 = wt * j1
             w2 = wt * g
@@ -404,37 +408,38 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     grad[4] = g4
     grad[5] = g5
     grad[6] = g6
-    hess[0, 0] = h00
-    hess[0, 1] = h01
-    hess[0, 2] = h02
-    hess[0, 3] = h03
-    hess[0, 4] = h04
-    hess[0, 5] = h05
-    hess[0, 6] = h06
-    hess[1, 1] = h11
-    hess[1, 2] = h12
-    hess[1, 3] = h13
-    hess[1, 4] = h14
-    hess[1, 5] = h15
-    hess[1, 6] = h16
-    hess[2, 2] = h22
-    hess[2, 3] = h23
-    hess[2, 4] = h24
-    hess[2, 5] = h25
-    hess[2, 6] = h26
-    hess[3, 3] = h33
-    hess[3, 4] = h34
-    hess[3, 5] = h35
-    hess[3, 6] = h36
-    hess[4, 4] = h44
-    hess[4, 5] = h45
-    hess[4, 6] = h46
-    hess[5, 5] = h55
-    hess[5, 6] = h56
-    hess[6, 6] = h66
-    for k in range(_NP):
-        for m in range(k + 1, _NP):
-            hess[m, k] = hess[k, m]
+    if hessian:
+        hess[0, 0] = h00
+        hess[0, 1] = h01
+        hess[0, 2] = h02
+        hess[0, 3] = h03
+        hess[0, 4] = h04
+        hess[0, 5] = h05
+        hess[0, 6] = h06
+        hess[1, 1] = h11
+        hess[1, 2] = h12
+        hess[1, 3] = h13
+        hess[1, 4] = h14
+        hess[1, 5] = h15
+        hess[1, 6] = h16
+        hess[2, 2] = h22
+        hess[2, 3] = h23
+        hess[2, 4] = h24
+        hess[2, 5] = h25
+        hess[2, 6] = h26
+        hess[3, 3] = h33
+        hess[3, 4] = h34
+        hess[3, 5] = h35
+        hess[3, 6] = h36
+        hess[4, 4] = h44
+        hess[4, 5] = h45
+        hess[4, 6] = h46
+        hess[5, 5] = h55
+        hess[5, 6] = h56
+        hess[6, 6] = h66
+        for k in range(_NP):
+            for m in range(k + 1, _NP):
+                hess[m, k] = hess[k, m]
     if far:
         obj_ref += _far_deviance(roi, s2, mu_ref, w_ref, mu_out, w_out)
     if method == LSQ:

@@ -11,9 +11,9 @@ or rings the Gaussian misses, A < I and the widths scatter more than the bound s
 ``docs/accuracy.md``).
 
 :func:`sandwich_batch` computes it in the fit's own numba code (one evaluation of the score and
-Fisher matrix of :func:`latentz.fit._kernels._evaluate` at the fit and one per parameter, a
-forward difference), about the cost of a few iterations of the fit; :func:`fit_arrays
-<latentz.fit.fit_arrays>` reports its diagonal as the ``*_err`` columns.
+Fisher matrix of :func:`latentz.fit._kernels._evaluate` at the fit, and one of the score alone
+per parameter, a forward difference), about the cost of a few iterations of the fit;
+:func:`fit_arrays <latentz.fit.fit_arrays>` reports its diagonal as the ``*_err`` columns.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
         step = _STEP * max(abs(p[k]), 1.0)
         p_try[k] = p[k] + step
         _evaluate(roi, p_try, MLE, s2, 1.0, scratch[0], scratch[1], scratch[0], scratch[1],
-                  lower, score_try)  # fmt: skip
+                  lower, score_try, True, False)  # the score alone: no Fisher matrix
         for m in range(N_PARAMS):
             observed[m, k] = -(score_try[m] - score[m]) / step
     for k in range(N_PARAMS):

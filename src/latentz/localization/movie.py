@@ -21,6 +21,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from latentz._shared.engine import resolve_device
+from latentz._shared.medians import row_medians
 from latentz._shared.sanity import check_offset
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
@@ -58,7 +59,7 @@ def check_camera_offset(camera: Camera, movie: Any) -> None:
     sample = movie[0][::4, ::4]
     if isinstance(sample, da.Array):
         sample = sample.compute(scheduler="synchronous")
-    check_offset(camera.offset, float(np.median(np.asarray(sample))))
+    check_offset(camera.offset, float(row_medians(np.asarray(sample).reshape(1, -1))[0]))
 
 
 def check_roi_fits(

@@ -42,7 +42,7 @@ from scipy.sparse.csgraph import connected_components
 from latentz.fit._model import PARAMS, photons_of
 from latentz.fit.api import CORRELATION_COLUMNS, ERROR_COLUMNS
 from latentz.fit.pairs import PairFit, fit_pairs, is_split
-from latentz.localization.quality import DUPLICATE_PX, assess
+from latentz.localization.quality import DUPLICATE_PX, calibration_flags
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -83,13 +83,13 @@ def _width_limit(table: pd.DataFrame) -> float:
     return median + WIDTH_MADS * 1.4826 * float(np.median(np.abs(width - median)))
 
 
-def _one_emitter(table: pd.DataFrame, calibration: Calibration | None) -> pd.DataFrame:
-    """``table``'s quality flags (:func:`.quality.assess`), after the calibration locates it."""
-    if calibration is None:
-        return assess(table)
+def _beyond_one(table: pd.DataFrame, calibration: Calibration) -> np.ndarray:
+    """Which rows of ``table`` the calibration does not locate or finds its widths and ρ far
+    from (``out_of_range`` or ``inconsistent``, :func:`.quality.calibration_flags`)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # localize applies the calibration again, and warns there
-        return assess(calibration.apply(table), calibration)
+        flags = calibration_flags(calibration.apply(table), calibration)
+    return flags["out_of_range"] | flags["inconsistent"]
 
 
 def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
@@ -169,8 +169,7 @@ def _candidates(
     else:
         beyond = np.zeros(len(table), bool)
         if poor.any():
-            flags = _one_emitter(table[poor], calibration)
-            beyond[poor] = (flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+            beyond[poor] = _beyond_one(table[poor], calibration)
     first = group == np.arange(len(table))
     return first & (beyond | (poor & seen_twice)), beyond
 
@@ -181,8 +180,7 @@ def _look_like_one(
     """Which member rows look like one emitter: located and consistent, or narrow enough."""
     if calibration is None:
         return _width(members) <= limit
-    flags = _one_emitter(members, calibration)
-    return ~(flags["out_of_range"] | flags["inconsistent"]).to_numpy(bool)
+    return ~_beyond_one(members, calibration)
 
 
 def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.DataFrame:

@@ -40,11 +40,14 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz._shared.columns import with_columns
+
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
 __all__ = [
     "assess",
+    "calibration_flags",
     "summary",
     "good_rows",
     "QUALITY_COLUMNS",
@@ -145,28 +148,29 @@ def _consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]
     return {"consistency_chi2": chi2, "width_ratio": ratio, "axis_mismatch": mismatch}
 
 
+def calibration_flags(spots: pd.DataFrame, calibration: Calibration) -> dict[str, np.ndarray]:
+    """``out_of_range``, ``inconsistent`` and the consistency scores of ``spots`` that
+    ``calibration`` was applied to (module docstring): each spot's own, whatever the other rows."""
+    z_err = spots["z_err_nm"].to_numpy(float)
+    with np.errstate(invalid="ignore"):
+        inside = spots["in_range"].to_numpy(bool) & (z_err <= Z_ERR_LIMIT_NM)
+    scores = _consistency(spots, calibration)
+    with np.errstate(invalid="ignore"):
+        inconsistent = scores["consistency_chi2"] > CHI2_LIMIT
+    return {"out_of_range": ~inside, "inconsistent": inconsistent, **scores}
+
+
 def assess(spots: pd.DataFrame, calibration: Calibration | None = None) -> pd.DataFrame:
     """A copy of ``spots`` with the quality flags, ``good``, and (with a calibration that was
     applied to them) the consistency scores; see the module docstring."""
     out = spots.drop(columns=[c for c in QUALITY_COLUMNS if c in spots.columns])
     duplicate, unresolved = _duplicates_and_neighbours(out)
-    out["duplicate"] = duplicate
-    out["unresolved"] = unresolved
+    new = {"duplicate": duplicate, "unresolved": unresolved}
     good = out["converged"].to_numpy(bool) & ~duplicate & ~unresolved
     if calibration is not None:
-        z_err = out["z_err_nm"].to_numpy(float)
-        with np.errstate(invalid="ignore"):
-            inside = out["in_range"].to_numpy(bool) & (z_err <= Z_ERR_LIMIT_NM)
-        scores = _consistency(out, calibration)
-        with np.errstate(invalid="ignore"):
-            inconsistent = scores["consistency_chi2"] > CHI2_LIMIT
-        out["out_of_range"] = ~inside
-        out["inconsistent"] = inconsistent
-        for name, values in scores.items():
-            out[name] = values
-        good &= inside & ~inconsistent
-    out["good"] = good
-    return out
+        new |= calibration_flags(out, calibration)
+        good &= ~new["out_of_range"] & ~new["inconsistent"]
+    return with_columns(out, new | {"good": good})
 
 
 def summary(table: pd.DataFrame) -> dict[str, int]:

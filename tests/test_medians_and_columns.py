@@ -1,0 +1,38 @@
+"""The shared helpers that make the per-chunk work cheaper must give what NumPy and pandas give:
+medians by sorting (`latentz._shared.medians`) and columns set at once
+(`latentz._shared.columns`)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from latentz._shared.columns import with_columns
+from latentz._shared.medians import row_medians
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 64, 65, 4096, 4097])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
+def test_row_medians_are_numpys_medians_in_float64(n, dtype):
+    rng = np.random.default_rng(n)
+    rows = [rng.normal(100, 20, n), rng.integers(95, 105, n), np.full(n, 7.0)]  # ties, constant
+    heavy = rng.normal(100, 5, n)
+    heavy[:: max(1, n // 10)] = 60000  # bright outliers, as spots in a noise sample
+    values = np.clip(np.stack([*rows, heavy]), 0, 65535).astype(dtype)
+    got = row_medians(values)
+    assert got.dtype == np.float64
+    assert np.array_equal(got, [np.median(row.astype(np.float64)) for row in values])
+
+
+def test_with_columns_replaces_in_place_appends_in_order_and_keeps_index_and_attrs():
+    table = pd.DataFrame({"a": [1.0, 2.0, 3.0], "b": [4, 5, 6], "c": [True, False, True]},
+                         index=[7, 7, 2])  # fmt: skip
+    table.attrs["roi_size"] = 11
+    new = {"z": np.array([0.5, 0.6, 0.7]), "b": np.array([9, 8, 7]), "y": np.zeros(3, bool)}
+    got = with_columns(table, new)
+    expected = table.copy()
+    for name, values in new.items():
+        expected[name] = values
+    pd.testing.assert_frame_equal(got, expected, check_exact=True)
+    assert got.attrs == {"roi_size": 11}
+    assert table.columns.tolist() == ["a", "b", "c"]  # the input is left as it was
+    assert table["b"].tolist() == [4, 5, 6]
