@@ -219,8 +219,9 @@ class Calibration:
         (:meth:`_shape_params_shift`): the shapes their particle's own fit would show at their
         z, comparable with :meth:`curves_at`; None where the calibration has no dimmed refits
         or the spots no ``background``."""
-        cols = {"amplitude": located["amplitude"].to_numpy(float)}
-        shift = self._shape_params_shift(located, cols, located["cal_particle"].to_numpy(int),
+        cols = {c: located[c].to_numpy(float) for c in ("amplitude", "background")
+                if c in located.columns}  # fmt: skip
+        shift = self._shape_params_shift(cols, located["cal_particle"].to_numpy(int),
                                          located["z_nm"].to_numpy(float))  # fmt: skip
         return None if shift is None else located[list(SHAPE_PARAMS)].to_numpy(float) - shift
 
