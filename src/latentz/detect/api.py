@@ -176,8 +176,7 @@ def noise_level(filtered: np.ndarray) -> float:
     if values.ndim == 2:
         step = noise_stride(values.shape)
         values = values[::step, ::step]
-    values = values.ravel()
-    return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
+    return float(_noise_levels(values[None])[0])
 
 
 def _noise_levels(samples: np.ndarray) -> np.ndarray:
