@@ -170,12 +170,14 @@ def _curve_widths(cal: Calibration, p: np.ndarray, z: np.ndarray) -> tuple[np.nd
     return (cx + cy) / 2, (cx**2 + cy**2) / 2 * cal.camera.pixel_size_nm**2
 
 
-def _held_out_differences(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
-    """How far each spot's particle's curves at its z may lie from the truth at the spot's
-    place, as held-out particles show it: the log ratio of the particle's mean widths over its
-    nearest other kept particle's, and the difference of their mean squared widths (nm²), each
-    scaled by the spot's distance from its particle over theirs; zeros with one kept
-    particle."""
+def _held_out_differences(
+    table: pd.DataFrame, cal: Calibration, mean_p: np.ndarray, square_p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far each spot's particle's curves at its z (``mean_p``, ``square_p``:
+    :func:`_curve_widths` there) may lie from the truth at the spot's place, as held-out
+    particles show it: the log ratio of the particle's mean widths over its nearest other kept
+    particle's, and the difference of their mean squared widths (nm²), each scaled by the
+    spot's distance from its particle over theirs; zeros with one kept particle."""
     p, z = table["cal_particle"].to_numpy(int), table["z_nm"].to_numpy(float)
     if cal.kept.size < 2:
         return np.zeros(z.size), np.zeros(z.size)
@@ -185,18 +187,21 @@ def _held_out_differences(table: pd.DataFrame, cal: Calibration) -> tuple[np.nda
     q = cal.kept[nearest[row, 1]]
     xy = table[["x", "y"]].to_numpy(float)
     scale = np.hypot(*(xy - cal.positions[p]).T) / spacing[row, 1]
-    mean_p, square_p = _curve_widths(cal, p, z)
     mean_q, square_q = _curve_widths(cal, q, z)
     return scale * np.log(mean_p / mean_q), scale * (square_p - square_q)
 
 
-def _calibration_se(table: pd.DataFrame, cal: Calibration) -> tuple[float, float]:
-    """Standard errors that the calibration's own curves add to the spots' median log width
-    ratio and blur (nm²): a particle's curves err alike for every spot near it, so each
-    particle's median of :func:`_held_out_differences` over its spots, weighted by its share of the
-    spots, in quadrature."""
+def _calibration_se(
+    table: pd.DataFrame, cal: Calibration, mean_p: np.ndarray, square_p: np.ndarray
+) -> tuple[float, float]:
+    """Standard errors that the calibration's own curves (``mean_p``, ``square_p`` at the
+    spots' z: :func:`_curve_widths`) add to the spots' median log width ratio and blur (nm²):
+    a particle's curves err alike for every spot near it, so each particle's median of
+    :func:`_held_out_differences` over its spots, weighted by its share of the spots, in
+    quadrature."""
     particle = table["cal_particle"].to_numpy(int)
-    by_particle = pd.DataFrame(dict(zip(("log", "square"), _held_out_differences(table, cal),
+    differences = _held_out_differences(table, cal, mean_p, square_p)
+    by_particle = pd.DataFrame(dict(zip(("log", "square"), differences,
                                         strict=True))).groupby(particle)  # fmt: skip
     weighted = by_particle.median() * by_particle.size().to_numpy()[:, None] / particle.size
     return tuple(float(v) for v in np.sqrt((weighted**2).sum()))
@@ -213,7 +218,7 @@ def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float,
                                  table["z_nm"].to_numpy(float))  # fmt: skip
     log_width, log_se = _median(np.log((wx + wy) / 2 / mean))
     blur, blur_se = _median(square - (wx**2 + wy**2) / 2 * cal.camera.pixel_size_nm**2)
-    log_se, blur_se = np.hypot((log_se, blur_se), _calibration_se(table, cal))
+    log_se, blur_se = np.hypot((log_se, blur_se), _calibration_se(table, cal, mean, square))
     return log_width, float(log_se), blur, float(blur_se)
 
 
