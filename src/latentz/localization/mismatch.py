@@ -7,11 +7,11 @@ z readout cannot absorb are measured over the table's converged, unique, located
 - **the astigmatism's axis**: the rotation of the spots' ellipticity against the calibration's
   at each spot's z, half the angle of Σ E_spot · conj(E_curve(z)), where E = e1 + i e2
   (:func:`latentz.calibration.shape.ellipticity`) points at 2θ for an image elongated along θ.
-  The fit's noise in a spot's E enters this sum once, times the calibration's E, whose sign
-  flips through focus, so it widens the angle's standard error (from resampling the spots)
-  rather than turning it. The spots' own summed E² (the axis that
-  :func:`~latentz.calibration.shape.astigmatism_angle` finds) holds that noise squared: where the
-  fit's noise differs in e1 and e2 and outweighs a weak astigmatism, it turns the spots' axis by
+  Scatter of a spot's E enters this sum once, times the calibration's E, whose sign flips
+  through focus, so it widens the angle's standard error (from resampling the spots) rather
+  than turning it. The spots' own summed E² (the axis that
+  :func:`~latentz.calibration.shape.astigmatism_angle` finds) holds that scatter squared:
+  where it differs in e1 and e2 and outweighs a weak astigmatism, it turns the spots' axis by
   up to 45° against a right calibration's. A wrong calibration reads each z where its rotated
   shapes come nearest the spot's, near focus where its E is small and of either sign, so a 45°
   rotation reads as 5–30° here (:data:`AXIS_LIMIT_DEG`);
