@@ -265,7 +265,8 @@ def _cause(mismatch: Mismatch) -> str:
     elif mismatch.widths_off:
         causes.append(
             f"their widths are {np.exp(mismatch.log_width):.2g}x the calibration's: emitters "
-            "larger than the calibration particles, or another pixel size or objective"
+            "larger than the calibration particles, another pixel size or objective, or "
+            "astigmatism along other axes (a rotated camera)"
         )
     return "; ".join(causes)
 
