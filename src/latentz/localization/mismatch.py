@@ -14,7 +14,7 @@ z readout cannot absorb are measured over the table's converged, unique, located
   where it differs in e1 and e2 and outweighs a weak astigmatism, it turns the spots' axis by
   up to 45° against a right calibration's. A wrong calibration reads each z where its rotated
   shapes come nearest the spot's, near focus where its E is small and of either sign, so a 45°
-  rotation reads as 5–30° here (:data:`AXIS_LIMIT_DEG`);
+  rotation reads as 1–30° here (:data:`AXIS_LIMIT_DEG`);
 - **the widths**, each spot's carried to its calibration particle's brightness by the
   calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
   this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
@@ -58,12 +58,12 @@ if TYPE_CHECKING:
 __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 
 #: Rotation (degrees) of the spots' ellipticity against the calibration's beyond which the
-#: calibration is blamed. Right calibrations give within ±4° (±0.4–4.9), 16 of 19 within one
-#: standard error, on microscopes of 3–90 nm RMS astigmatism (very weak ones among them, widths
-#: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives
-#: 11–12° ± 6° on strong and weak astigmatism (the width checks blame it), 5–30° on very weak
-#: (blamed on 5 of 7: there it doubles the z error, from 106–169 nm RMS to 222–348 nm)
-#: (benchmarks/bench_wrong_calibration.py).
+#: calibration is blamed. Right calibrations give within ±5.2° (± 0.4–4.9°; 17 of 21 within
+#: one standard error) on 21 microscopes of 3–90 nm RMS astigmatism and 6 more of 3–8 nm (widths
+#: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives −30° to
+#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on 2 of 14
+#: stronger ones, where the width checks blame 12 of 14; the 6 very weak and 2 weak ones missed
+#: double the z error (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
