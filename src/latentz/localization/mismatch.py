@@ -62,10 +62,10 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 #: one standard error) on 21 microscopes of 3–90 nm RMS astigmatism and 6 more of 3–8 nm (widths
 #: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives −30° to
 #: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on 2 of 14
-#: stronger ones, where the width checks blame 12 of 14; the 6 very weak and 2 weak ones missed
-#: double the z error. Tables of 20–80 spots of a very weakly astigmatic microscope condemn
-#: its right calibration up to 18 % of the time (benchmarks/bench_wrong_calibration.py,
-#: docs/single-molecules.md).
+#: stronger ones, where the width checks blame 12 of 14; those missed that were measured
+#: against the truth (2 weak, 2 very weak) double the z error. Tables of 20–80 spots of a very
+#: weakly astigmatic microscope condemn its right calibration up to 18 % of the time
+#: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
