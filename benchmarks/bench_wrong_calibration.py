@@ -15,7 +15,9 @@ log width ratio and blur in nm, each ± its standard error), whether
 in-range localizations that are good, and the z RMSE of the converged, unique, in-range spots
 against the truth (each paired with the nearest molecule within 250 nm laterally at any depth,
 one z offset removed: :func:`latentz.validation.challenge.offset_pairs`), which says whether
-a wrong calibration that is not caught costs z. Writes ``results/bench_wrong_calibration.md``.
+a wrong calibration that is not caught costs z. For right calibrations, how often small tables
+blame the axis: the share of :data:`SUBSETS` random draws of 20, 40 and 80 of the checked spots
+whose axis is off. Writes ``results/bench_wrong_calibration.md``.
 
 Run: ``python benchmarks/bench_wrong_calibration.py [--right 3] [--kinds strong weak "very weak"]``.
 """
@@ -31,6 +33,7 @@ import pandas as pd
 from _rounds import machine, write_results
 from bench_verdicts import markdown
 
+from latentz.calibration import Calibration
 from latentz.localization import mismatch
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
@@ -43,6 +46,10 @@ from latentz.validation.molecules import (
 MICROSCOPES = {"strong": (11, (50.0, 90.0)), "weak": (12, (20.0, 30.0)),
                "very weak": (13, (3.0, 8.0))}  # fmt: skip
 
+
+#: Random draws of each small table size (spots) of a right calibration's checked spots.
+SUBSETS = 100
+SMALL_TABLES = (20, 40, 80)
 
 #: The calibrations that the ``--right`` microscopes get.
 EXTRA = ("right", "axis 45° off", "wavelength 1.2x")
@@ -77,6 +84,8 @@ def scores(kind: str, seed: int, astigmatism: tuple[float, float], only_right: b
             "warns": "yes" if caught else "no",
             "good of correct in range": float(locs["good"].to_numpy(bool)[located].mean()),
             "z RMSE nm": _z_rmse(locs[checked & locs["in_range"].to_numpy(bool)], truth),
+            "axis off, 20/40/80 spots %": _small_tables(locs[checked], cal, seed)
+            if name == "right" else "",
         })  # fmt: skip
     return out
 
@@ -86,6 +95,18 @@ def _z_rmse(spots: pd.DataFrame, truth: pd.DataFrame) -> float:
     at any depth, after one z offset."""
     pairs, _ = offset_pairs(truth, spots, axial_nm=1e6)
     return float(np.sqrt(np.mean(pairs["dz_nm"] ** 2)))
+
+
+def _small_tables(spots: pd.DataFrame, cal: Calibration, seed: int) -> str:
+    """Percent of :data:`SUBSETS` random draws of each of :data:`SMALL_TABLES` of ``spots``
+    whose axis :func:`~latentz.localization.mismatch.calibration_mismatch` finds off."""
+    rng = np.random.default_rng(seed)
+    shares = []
+    for size in SMALL_TABLES:
+        draws = (spots.iloc[rng.choice(len(spots), size, replace=False)] for _ in range(SUBSETS))
+        off = [mismatch.calibration_mismatch(draw, cal).axis_off for draw in draws]
+        shares.append(100 * np.mean(off))
+    return "/".join(f"{share:.0f}" for share in shares)
 
 
 def _blur_se_nm(found: mismatch.Mismatch) -> float:
