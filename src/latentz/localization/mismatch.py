@@ -100,7 +100,7 @@ _RESAMPLES = 200
 class Mismatch(NamedTuple):
     """What :func:`calibration_mismatch` measures (NaN where too few spots)."""
 
-    axis_deg: float  #: spots' astigmatism axis minus the calibration's, degrees in [−45, 45)
+    axis_deg: float  #: spots' ellipticity turned from the calibration's at their z, ° in [−45, 45)
     axis_se_deg: float
     log_width: float  #: log of the spots' mean width over the calibration's
     log_width_se: float
