@@ -64,7 +64,7 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 #: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on 2 of 14
 #: stronger ones, where the width checks blame 12 of 14; those missed that were measured
 #: against the truth (2 weak, 2 very weak) double the z error. Tables of 20–80 spots of a very
-#: weakly astigmatic microscope condemn its right calibration up to 18 % of the time
+#: weakly astigmatic microscope condemn its right calibration up to 14 % of the time
 #: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
