@@ -4,12 +4,17 @@ A calibration from another microscope or camera moves z wherever the spots' shap
 matched, so each spot may look consistent while the table as a whole is not. Two things the
 z readout cannot absorb are measured over the table's converged, unique, located spots:
 
-- **the astigmatism's axis**: the angle of the spots' summed E² (E = e1 + i e2, the ellipticity
-  of :func:`latentz.calibration.shape.ellipticity`; its direction is 4θ on both sides of focus,
-  as :func:`~latentz.calibration.shape.astigmatism_angle` uses it) against that of the
-  calibration's own trace points. Each angle's standard error comes from resampling its spots or
-  trace points, so a weakly astigmatic calibration (round images, a poorly known axis) or few
-  dim spots widen it (not enough for very weak astigmatism: :data:`AXIS_LIMIT_DEG`);
+- **the astigmatism's axis**: the rotation of the spots' ellipticity against the calibration's
+  at each spot's z, half the angle of Σ E_spot · conj(E_curve(z)), where E = e1 + i e2
+  (:func:`latentz.calibration.shape.ellipticity`) points at 2θ for an image elongated along θ.
+  Scatter of a spot's E enters this sum once, times the calibration's E, whose sign flips
+  through focus, so it widens the angle's standard error (from resampling the spots) rather
+  than turning it. The spots' own summed E² (the axis that
+  :func:`~latentz.calibration.shape.astigmatism_angle` finds) holds that scatter squared:
+  where it differs in e1 and e2 and outweighs a weak astigmatism, it turns the spots' axis by
+  up to 45° against a right calibration's. A wrong calibration reads each z where its rotated
+  shapes come nearest the spot's, near focus where its E is small and of either sign, so a 45°
+  rotation reads as 1–30° here (:data:`AXIS_LIMIT_DEG`);
 - **the widths**, each spot's carried to its calibration particle's brightness by the
   calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
   this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
@@ -52,13 +57,15 @@ if TYPE_CHECKING:
 
 __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 
-#: Rotation (degrees) of the spots' astigmatism axis against the calibration's beyond which the
-#: calibration is blamed: right calibrations give within ±1.5° (1–2 standard errors) on
-#: microscopes of 20–90 nm RMS astigmatism and on the high-NA family draws 17 and 19, one whose
-#: astigmatism lies 45° off gives 43–44°. Very weak astigmatism (3–8 nm RMS, widths within
-#: 0.93–1.08 of each other over ±400 nm) is not held: there the dim molecules' ellipticity
-#: (|E| ≈ 0.05) points elsewhere than the beads', 6–45° on 4 right calibrations, 3 of them
-#: condemned (benchmarks/bench_wrong_calibration.py).
+#: Rotation (degrees) of the spots' ellipticity against the calibration's beyond which the
+#: calibration is blamed. Right calibrations give within ±5.2° (± 0.4–4.9°; 17 of 21 within
+#: one standard error) on 21 microscopes of 3–90 nm RMS astigmatism and 6 more of 3–8 nm (widths
+#: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives −30° to
+#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on 2 of 14
+#: stronger ones, where the width checks blame 12 of 14; those missed that were measured
+#: against the truth (2 weak, 2 very weak) double the z error. Tables of 20–80 spots of a very
+#: weakly astigmatic microscope condemn its right calibration up to 14 % of the time
+#: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
@@ -93,7 +100,7 @@ _RESAMPLES = 200
 class Mismatch(NamedTuple):
     """What :func:`calibration_mismatch` measures (NaN where too few spots)."""
 
-    axis_deg: float  #: spots' astigmatism axis minus the calibration's, degrees in [−45, 45)
+    axis_deg: float  #: spots' ellipticity turned from the calibration's at their z, ° in [−45, 45)
     axis_se_deg: float
     log_width: float  #: log of the spots' mean width over the calibration's
     log_width_se: float
@@ -122,15 +129,23 @@ def _checked(table: pd.DataFrame) -> np.ndarray:
     return ok & ~table["duplicate"].to_numpy(bool)
 
 
-def _axis(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray, seed: int) -> tuple[float, float]:
-    """Astigmatism axis (rad, from the summed E²) of shapes (wx, wy, ρ) and its standard error
-    over :data:`_RESAMPLES` resamples of them."""
+def _spin(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Ellipticity E = e1 + i e2 of shapes (wx, wy, ρ)."""
     e1, e2 = ellipticity(wx, wy, rho)
-    spin = ((e1 + 1j * e2) ** 2).ravel()
-    spin = spin[np.isfinite(spin)]
-    angle = np.angle(spin.sum()) / 4
-    draws = np.random.default_rng(seed).integers(0, spin.size, (_RESAMPLES, spin.size))
-    spread = _wrap(np.angle(spin[draws].sum(axis=1)) / 4 - angle)
+    return e1 + 1j * e2
+
+
+def _axis(spots: pd.DataFrame, cal: Calibration, seed: int) -> tuple[float, float]:
+    """Rotation (rad, in [−π/4, π/4)) of the spots' ellipticity against their particle's curves
+    at their z, half the angle of Σ E_spot · conj(E_curve), and its standard error over
+    :data:`_RESAMPLES` resamples of the spots."""
+    curves = cal.curves_at(spots["cal_particle"].to_numpy(int), spots["z_nm"].to_numpy(float))
+    spot = _spin(*(spots[c].to_numpy(float) for c in ("wx", "wy", "rho")))
+    match = spot * np.conj(_spin(curves["wx"], curves["wy"], curves["rho"]))
+    match = match[np.isfinite(match)]
+    angle = _wrap(np.angle(match.sum()) / 2)
+    draws = np.random.default_rng(seed).integers(0, match.size, (_RESAMPLES, match.size))
+    spread = _wrap(np.angle(match[draws].sum(axis=1)) / 2 - angle)
     return float(angle), float(np.std(spread))
 
 
@@ -230,13 +245,8 @@ def calibration_mismatch(table: pd.DataFrame, calibration: Calibration) -> Misma
     if n < MIN_SPOTS:
         return Mismatch(np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, n)
     spots = table[checked]
-    angle, se = _axis(*(spots[c].to_numpy(float) for c in ("wx", "wy", "rho")), seed=n)
-    traces = calibration.traces
-    kept = calibration.kept
-    cal_angle, cal_se = _axis(*(traces[c][kept] for c in ("wx", "wy", "rho")), seed=n + 1)
-    axis = np.degrees(_wrap(angle - cal_angle))
-    widths = _widths(spots, calibration)
-    return Mismatch(float(axis), float(np.degrees(np.hypot(se, cal_se))), *widths, n)
+    axis, axis_se = np.degrees(_axis(spots, calibration, seed=n))
+    return Mismatch(float(axis), float(axis_se), *_widths(spots, calibration), n)
 
 
 def _cause(mismatch: Mismatch) -> str:
@@ -257,7 +267,8 @@ def _cause(mismatch: Mismatch) -> str:
     elif mismatch.widths_off:
         causes.append(
             f"their widths are {np.exp(mismatch.log_width):.2g}x the calibration's: emitters "
-            "larger than the calibration particles, or another pixel size or objective"
+            "larger than the calibration particles, another pixel size or objective, or "
+            "astigmatism along other axes (a rotated camera)"
         )
     return "; ".join(causes)
 
