@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -846,6 +846,7 @@ class Calibration:
         amplitude_reference: str = "calibration",
         error_parts: bool = False,
         z_readout: str = "shape",
+        errors: bool = True,
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
@@ -883,6 +884,9 @@ class Calibration:
             part that varies across the field (field model, dimming transfer, distance to the
             particle); the local model's σ and the amplitude reference's scatter are the
             rest, in quadrature.
+        errors : bool
+            False: the places alone, without the ``*_err_nm`` columns (about half the cost, for
+            a caller that only asks where the spots are).
 
         Returns
         -------
@@ -895,24 +899,32 @@ class Calibration:
             shape value mimics one inside it), z_nm and the corrected positions are NaN and
             in_range is False.
         """
+        if error_parts and not errors:
+            raise ValueError("error_parts=True needs the errors: leave errors=True.")
+        placed = self._place(spots, amplitude_reference, z_readout)
+        out = {"x_nm": placed.x_nm, "y_nm": placed.y_nm, "z_nm": placed.z}
+        if errors:
+            out = self._errors(spots, placed, z_readout, error_parts)
+        return with_columns(spots, out | {"in_range": placed.in_range, "cal_particle": placed.p})
+
+    def _place(self, spots: pd.DataFrame, amplitude_reference: str, z_readout: str) -> _Placed:
+        """Where :meth:`apply` puts ``spots`` (its checks first), before their errors."""
         check_columns("spots", spots, SPOT_COLUMNS)
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
         cols = _spot_arrays(spots)
         check_widths(np.column_stack([cols["wx"], cols["wy"]]), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         check_choice("z_readout", z_readout, Z_READOUTS)
-        shape = self.shape
         # a spot with any non-finite fit value is a broken fit: never in range
         located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
-        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
         joint = None
         if z_readout == "joint":
             s, joint = self._joint_shape(cols, p)
             ref_scatter = 0.0  # z does not use the amplitude
         else:
-            s = shape_value(shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
+            s = shape_value(self.shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
                             theta=self.local.theta, amplitude_ref=ref)  # fmt: skip
         z, shifts, in_range = self._locate(s, p, cols, located)
         if joint is None and "background" in cols and "dim0_wx" in self.traces.data:
@@ -922,18 +934,32 @@ class Calibration:
         if joint is None:
             in_range &= ~self._past_turn(cols, p, np.where(in_range, z, np.nan))
         z = np.where(in_range, z, np.nan)
-        at = row_weights(self.local.z_nm, p, z)
-        z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
-        out, px = {}, self.camera.pixel_size_nm
+        px = self.camera.pixel_size_nm
         dimmed = None  # the spot's own brightness moves its fitted centre (coma)
         if "background" in cols and "dim0_dx" in self.traces.data:
             dimmed = self._position_shifts(cols["amplitude"], cols["background"], p, z)
+        place = {}
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
             if dimmed is not None:
                 shift = shift + dimmed[axis]
+            place[axis] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
+        return _Placed(cols, p, s, z, in_range, place["x"], place["y"], joint, ref, ref_scatter)
+
+    def _errors(self, spots: pd.DataFrame, placed: _Placed, z_readout: str,
+                error_parts: bool) -> dict[str, np.ndarray]:  # fmt: skip
+        """:meth:`apply`'s columns of the ``placed`` spots, their places with their errors
+        (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm, z_nm, z_err_nm, and with
+        ``error_parts`` z_err_fit_nm and z_err_field_nm."""
+        cols, p, z, in_range = placed.cols, placed.p, placed.z, placed.in_range
+        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
+        at = row_weights(self.local.z_nm, p, z)
+        z_err, z_fit = self._z_error(spots, placed.s, p, z, in_range, at, placed.ref,
+                                     placed.ref_scatter, placed.joint)  # fmt: skip
+        out = {}
+        for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
             err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
-            out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
+            out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
         z_field = self._z_field_error(spots, cols, z, distance, z_readout)
@@ -941,9 +967,7 @@ class Calibration:
         if error_parts:
             out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
             out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
-        out["in_range"] = in_range
-        out["cal_particle"] = p
-        return with_columns(spots, out)
+        return out
 
     def _beyond_range(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """(n,) spots at z (nm) on particles ``p`` whose mean fitted width (``cols``' wx, wy,
@@ -1067,6 +1091,25 @@ def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
     """The spots' columns that :meth:`Calibration.apply` reads (:data:`_READ_COLUMNS`, those
     the table has) as float64 arrays, each read once."""
     return {c: spots[c].to_numpy(dtype=np.float64) for c in _READ_COLUMNS if c in spots.columns}
+
+
+class _Placed(NamedTuple):
+    """Where :meth:`Calibration.apply` puts spots, and what their errors read: the spots'
+    columns ``cols`` (:func:`_spot_arrays`), nearest particles ``p``, shape values ``s``, ``z``
+    (nm, NaN out of range), ``in_range``, the corrected ``x_nm``, ``y_nm``, the joint readout
+    (None with the one shape value) and the amplitude reference ``ref`` with its relative
+    scatter."""
+
+    cols: dict[str, np.ndarray]
+    p: np.ndarray
+    s: np.ndarray
+    z: np.ndarray
+    in_range: np.ndarray
+    x_nm: np.ndarray
+    y_nm: np.ndarray
+    joint: JointZ | None
+    ref: np.ndarray
+    ref_scatter: float
 
 
 def _stacked(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray:
