@@ -904,7 +904,7 @@ class Calibration:
         placed = self._place(spots, amplitude_reference, z_readout)
         out = {"x_nm": placed.x_nm, "y_nm": placed.y_nm, "z_nm": placed.z}
         if errors:
-            out = self._errors(spots, placed, z_readout, error_parts)
+            out = self._errors(placed, z_readout, error_parts)
         return with_columns(spots, out | {"in_range": placed.in_range, "cal_particle": placed.p})
 
     def _place(self, spots: pd.DataFrame, amplitude_reference: str, z_readout: str) -> _Placed:
@@ -946,15 +946,14 @@ class Calibration:
             place[axis] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
         return _Placed(cols, p, s, z, in_range, place["x"], place["y"], joint, ref, ref_scatter)
 
-    def _errors(self, spots: pd.DataFrame, placed: _Placed, z_readout: str,
-                error_parts: bool) -> dict[str, np.ndarray]:  # fmt: skip
+    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool) -> dict[str, np.ndarray]:
         """:meth:`apply`'s columns of the ``placed`` spots, their places with their errors
         (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm, z_nm, z_err_nm, and with
         ``error_parts`` z_err_fit_nm and z_err_field_nm."""
         cols, p, z, in_range = placed.cols, placed.p, placed.z, placed.in_range
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         at = row_weights(self.local.z_nm, p, z)
-        z_err, z_fit = self._z_error(spots, placed.s, p, z, in_range, at, placed.ref,
+        z_err, z_fit = self._z_error(cols, placed.s, p, z, in_range, at, placed.ref,
                                      placed.ref_scatter, placed.joint)  # fmt: skip
         out = {}
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
@@ -962,7 +961,7 @@ class Calibration:
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_field = self._z_field_error(spots, cols, z, distance, z_readout)
+        z_field = self._z_field_error(cols, z, distance, z_readout)
         out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
         if error_parts:
             out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
@@ -982,8 +981,8 @@ class Calibration:
                 out[found] = width > BEYOND_WIDTH * (np.abs(c["wx"]) + np.abs(c["wy"]))
         return out
 
-    def _z_field_error(self, spots: pd.DataFrame, cols: dict, z: np.ndarray,
-                       distance: np.ndarray, readout: str) -> np.ndarray:  # fmt: skip
+    def _z_field_error(self, cols: dict, z: np.ndarray, distance: np.ndarray,
+                       readout: str) -> np.ndarray:  # fmt: skip
         """The part of σ_z (nm) that varies across the field, as held-out particles measure
         it: the field model's cross-validated error with the dimming correction's transfer
         (at the spot's background ratio c), or, where larger, the error of held-out particles
@@ -992,10 +991,11 @@ class Calibration:
         (with the joint readout, the pairs' alone: the cross-validation and the transfer are
         the shape value's, and the pairs hold both for the joint readout): for another field
         model it counts only beyond the distances its cross-validation held out (above their
-        90th percentile), where the model extrapolates."""
+        90th percentile), where the model extrapolates; ``cols``: the spots' columns
+        (:func:`_spot_arrays`)."""
         c_spot = None
-        if "background" in spots.columns and "dim0_wx" in self.traces.data:
-            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
+        if "background" in cols and "dim0_wx" in self.traces.data:
+            c_spot = background_ratio(cols["background"], cols["amplitude"],
                                       self.camera.readnoise)  # fmt: skip
         pair = self._pair_sigma(z, c_spot, distance, readout)
         if readout == "joint" and self.field_model == "nearest":
@@ -1024,7 +1024,7 @@ class Calibration:
 
     def _z_error(
         self,
-        spots: pd.DataFrame,
+        cols: dict[str, np.ndarray],
         s: np.ndarray,
         p: np.ndarray,
         z: np.ndarray,
@@ -1038,16 +1038,16 @@ class Calibration:
         errors where it carries them, else the calibration's at z) with the particle's model
         error, and the amplitude reference's scatter; and the fit's part alone (NaN where the
         spots carry no fit errors). With the ``joint`` readout, the fit's part is its σ or,
-        where larger, its spread over a second minimum."""
+        where larger, its spread over a second minimum. ``cols``: the spots' columns
+        (:func:`_spot_arrays`), NaN for a correlation they lack."""
         model_part = self._model_sigma("z", p, z, at)
-        fit_part = np.full(len(spots), np.nan)
-        if all(c in spots.columns for c in _ERROR_COLUMNS):
-            params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
-            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
-            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
+        fit_part = np.full(len(s), np.nan)
+        if all(c in cols for c in _ERROR_COLUMNS):
             if joint is None:  # scaled about each z (noise_scale_by_z)
+                params, errors = _stacked(cols, _PARAMS), _stacked(cols, _ERROR_COLUMNS)
                 fit_part = self._noise_scale_at(z) * self._fit_part_z(
-                    params, errors, corr, p, np.where(in_range, s, 0.0), ref)  # fmt: skip
+                    params, errors, _stacked(cols, CORRELATION_COLUMNS), p,
+                    np.where(in_range, s, 0.0), ref)  # fmt: skip
             else:  # its fit covariance already scaled by noise_scale (joint_readout)
                 fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
             z_err = np.hypot(fit_part, model_part)
