@@ -793,16 +793,15 @@ class Calibration:
     def _shape_params_shift(self, cols: dict, p: np.ndarray,
                             z: np.ndarray) -> np.ndarray | None:  # fmt: skip
         """(n, 3) brightness shift of the fitted wx, wy, ρ of the spots of columns ``cols`` on
-        particles ``p`` at z (nm) (:func:`~latentz.calibration.dimming.shape_shift` of each, from
-        one read of :meth:`_dimming_terms`; 0 where unknown), or None where the calibration has
-        no dimmed refits or the spots no background."""
+        particles ``p`` at z (nm) (:func:`~latentz.calibration.dimming.shape_shift` of the three
+        at once, from one read of :meth:`_dimming_terms`; 0 where unknown), or None where the
+        calibration has no dimmed refits or the spots no background."""
         from latentz.calibration.dimming import shape_shift
 
         if "background" not in cols or "dim0_wx" not in self.traces.data:
             return None
         terms = self._dimming_terms(cols["amplitude"], cols["background"], p, z)
-        shift = np.column_stack([shape_shift(lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k], *terms)
-                                 for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+        shift = shape_shift(lambda a, wx, wy, rho: np.column_stack([wx, wy, rho]), *terms)
         return np.where(np.isfinite(shift), shift, 0.0)
 
     def _past_turn(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
