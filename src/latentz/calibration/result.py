@@ -884,19 +884,19 @@ class Calibration:
             particle); the local model's σ and the amplitude reference's scatter are the
             rest, in quadrature.
         errors : bool
-            False: the places alone, without the ``*_err_nm`` columns (about half the cost, for
-            a caller that only asks where the spots are).
+            False: the places alone, without the ``*_err_nm`` columns, whose computation is
+            skipped (for a caller that only asks where the spots are).
 
         Returns
         -------
         DataFrame
-            A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm, in_range and
-            cal_particle (index of the calibration particle used). Outside that particle's
-            calibrated range (its monotonic range, or widths over :data:`BEYOND_WIDTH` times
-            its curves' at the z read, or, with the one shape value, fitted wx, wy, ρ nearest
-            its curves beyond that range (:meth:`_past_turn`): a spot beyond the range whose
-            shape value mimics one inside it), z_nm and the corrected positions are NaN and
-            in_range is False.
+            A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm (not with
+            ``errors=False``), in_range and cal_particle (index of the calibration particle
+            used). Outside that particle's calibrated range (its monotonic range, or widths
+            over :data:`BEYOND_WIDTH` times its curves' at the z read, or, with the one shape
+            value, fitted wx, wy, ρ nearest its curves beyond that range (:meth:`_past_turn`):
+            a spot beyond the range whose shape value mimics one inside it), z_nm and the
+            corrected positions are NaN and in_range is False.
         """
         if error_parts and not errors:
             raise ValueError("error_parts=True needs the errors: leave errors=True.")
