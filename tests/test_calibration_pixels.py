@@ -30,13 +30,14 @@ def _frame(places: np.ndarray, sigma_px: float = 1.3, photons: float = 5e3) -> n
 
 class _ShiftingCalibration:
     """Stands in for a calibration whose lateral correction is ``shift`` (px, per spot in
-    order): ``apply`` puts each spot's corrected place at its fitted centre less its shift."""
+    order): ``apply`` puts each spot's corrected place at its fitted centre less its shift
+    (with or without errors: it has none)."""
 
     def __init__(self, shift: np.ndarray) -> None:
         self.shift = shift
         self.camera = SimpleNamespace(pixel_size_nm=PIXEL_NM)
 
-    def apply(self, table: pd.DataFrame) -> pd.DataFrame:
+    def apply(self, table: pd.DataFrame, *, errors: bool = True) -> pd.DataFrame:
         return table.assign(x_nm=(table["x"] - self.shift[:, 0]) * PIXEL_NM,
                             y_nm=(table["y"] - self.shift[:, 1]) * PIXEL_NM,
                             in_range=True)  # fmt: skip

@@ -1,6 +1,6 @@
-"""The shared helpers that make the per-chunk work cheaper must give what NumPy and pandas give:
-medians by sorting (`latentz._shared.medians`) and columns set at once
-(`latentz._shared.columns`)."""
+"""The helpers that make the per-chunk work cheaper must give what NumPy and pandas give: medians
+by sorting (`latentz._shared.medians`), columns set at once (`latentz._shared.columns`), and the
+per-particle medians of the wrong-calibration check (`latentz.localization.mismatch`)."""
 
 import numpy as np
 import pandas as pd
@@ -36,3 +36,28 @@ def test_with_columns_replaces_in_place_appends_in_order_and_keeps_index_and_att
     assert got.attrs == {"roi_size": 11}
     assert table.columns.tolist() == ["a", "b", "c"]  # the input is left as it was
     assert table["b"].tolist() == [4, 5, 6]
+
+
+def test_with_columns_that_only_appends_leaves_the_input_as_it_was():
+    table = pd.DataFrame({"a": [1.0, 2.0], "b": [3, 4]}, index=[5, 6])
+    got = with_columns(table, {"c": np.array([0.1, 0.2])})
+    assert got.columns.tolist() == ["a", "b", "c"] and got.index.tolist() == [5, 6]
+    got.loc[5, "a"] = -1.0
+    assert table.columns.tolist() == ["a", "b"] and table["a"].tolist() == [1.0, 2.0]
+
+
+def test_particle_medians_are_each_particles_nanmedian_and_count():
+    from latentz.localization.mismatch import _particle_medians
+
+    rng = np.random.default_rng(3)
+    particle = rng.integers(0, 12, 300) * 7  # not 0, 1, 2, ...: ascending order is kept
+    values = rng.normal(0.0, 1.0, 300)
+    values[rng.random(300) < 0.2] = np.nan
+    values[particle == 14] = np.nan  # a particle whose every value is missing
+    median, size = _particle_medians(values, particle)
+    keys = np.unique(particle)
+    assert np.array_equal(size, [np.sum(particle == k) for k in keys])
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning, match="All-NaN"):
+        expected = [np.nanmedian(values[particle == k]) for k in keys]
+    assert np.array_equal(median, expected, equal_nan=True)
+    assert np.isnan(median[keys == 14]).all() and np.isfinite(median[keys != 14]).all()

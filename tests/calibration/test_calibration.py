@@ -88,6 +88,28 @@ def test_independent_emitters_localize_with_nearest_models(z_readout):
     assert np.isfinite(out.loc[keep, ["x_nm", "y_nm", "x_err_nm", "y_err_nm"]]).all().all()
 
 
+@pytest.mark.parametrize("z_readout", ["shape", "joint"])
+def test_places_without_errors_are_the_places_with_them(calibrated, z_readout):
+    """``errors=False`` leaves the error columns out and nothing else: independent emitters'
+    places, in range or not (every fifth spot 3x wider than any calibrated image, one a failed
+    fit), bit for bit those of the full ``apply``."""
+    cal = calibrated[0]
+    positions = np.random.default_rng(32).uniform(0, 500, (40, 2))
+    test, _ = make_traces(40, z_nm=np.arange(-2000.0, 2000.1, 100.0), z_f=np.zeros(40),
+                          positions=positions, seed=32)  # fmt: skip
+    spots = traces_table(test)
+    spots.loc[::5, ["wx", "wy"]] *= 3.0
+    spots.loc[1, ["x", "y"]] = np.nan
+    places = cal.apply(spots, z_readout=z_readout, errors=False)
+    full = cal.apply(spots, z_readout=z_readout)
+    new = ["x_nm", "y_nm", "z_nm", "in_range", "cal_particle"]
+    assert list(places.columns) == [*spots.columns, *(c for c in new if c not in spots)]
+    assert not places.loc[1, "in_range"] and 0.5 < places["in_range"].mean() < 0.9
+    pd.testing.assert_frame_equal(places, full[places.columns], check_exact=True)
+    with pytest.raises(ValueError, match="error_parts=True needs the errors"):
+        cal.apply(spots, errors=False, error_parts=True)
+
+
 def test_out_of_range_is_never_extrapolated(calibrated):
     cal, traces, _ = calibrated
     spots = traces_table(traces.subset([0]))

@@ -19,9 +19,10 @@ def with_columns(table: pd.DataFrame, new: dict[str, np.ndarray]) -> pd.DataFram
     """A copy of ``table`` with the ``new`` columns (name → array of ``len(table)`` values) set:
     those it already has replaced where they stand, the others appended in ``new``'s order; its
     index and ``attrs`` kept."""
-    kept = table.drop(columns=[name for name in new if name in table.columns])
+    replaced = [name for name in new if name in table.columns]
+    kept = table.drop(columns=replaced) if replaced else table
     out = pd.concat([kept, pd.DataFrame(new, index=table.index)], axis=1)
-    if len(kept.columns) < len(table.columns):  # the replaced columns back where they stood
+    if replaced:  # the replaced columns back where they stood
         out = out[[*table.columns, *(name for name in new if name not in table.columns)]]
     out.attrs = copy.deepcopy(table.attrs)
     return out

@@ -138,7 +138,8 @@ def shape_shift(
 
     ``traces_at(name)`` gives a trace at each spot's particle and plane ((n,); name one of
     :data:`DIM_COLUMNS`, or "amplitude", "wx", "wy", "rho" for the calibration's own fit), and
-    ``shape_of(amplitude, wx, wy, rho)`` the shape value.
+    ``shape_of(amplitude, wx, wy, rho)`` the shape value, or m values (n, m) whose biases
+    (n, m) are returned at once.
     """
     own = shape_of(*(traces_at(name) for name in _FITTED))
     dim = [shape_of(*(traces_at(f"dim{k}_{name}") for name in _FITTED)) for k in range(len(LEVELS))]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -793,16 +793,15 @@ class Calibration:
     def _shape_params_shift(self, cols: dict, p: np.ndarray,
                             z: np.ndarray) -> np.ndarray | None:  # fmt: skip
         """(n, 3) brightness shift of the fitted wx, wy, ρ of the spots of columns ``cols`` on
-        particles ``p`` at z (nm) (:func:`~latentz.calibration.dimming.shape_shift` of each, from
-        one read of :meth:`_dimming_terms`; 0 where unknown), or None where the calibration has
-        no dimmed refits or the spots no background."""
+        particles ``p`` at z (nm) (:func:`~latentz.calibration.dimming.shape_shift` of the three
+        at once, from one read of :meth:`_dimming_terms`; 0 where unknown), or None where the
+        calibration has no dimmed refits or the spots no background."""
         from latentz.calibration.dimming import shape_shift
 
         if "background" not in cols or "dim0_wx" not in self.traces.data:
             return None
         terms = self._dimming_terms(cols["amplitude"], cols["background"], p, z)
-        shift = np.column_stack([shape_shift(lambda a, wx, wy, rho, k=k: (wx, wy, rho)[k], *terms)
-                                 for k in range(len(SHAPE_PARAMS))])  # fmt: skip
+        shift = shape_shift(lambda a, wx, wy, rho: np.column_stack([wx, wy, rho]), *terms)
         return np.where(np.isfinite(shift), shift, 0.0)
 
     def _past_turn(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -846,6 +845,7 @@ class Calibration:
         amplitude_reference: str = "calibration",
         error_parts: bool = False,
         z_readout: str = "shape",
+        errors: bool = True,
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
@@ -883,36 +883,47 @@ class Calibration:
             part that varies across the field (field model, dimming transfer, distance to the
             particle); the local model's σ and the amplitude reference's scatter are the
             rest, in quadrature.
+        errors : bool
+            False: the places alone, without the ``*_err_nm`` columns, whose computation is
+            skipped (for a caller that only asks where the spots are).
 
         Returns
         -------
         DataFrame
-            A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm, in_range and
-            cal_particle (index of the calibration particle used). Outside that particle's
-            calibrated range (its monotonic range, or widths over :data:`BEYOND_WIDTH` times
-            its curves' at the z read, or, with the one shape value, fitted wx, wy, ρ nearest
-            its curves beyond that range (:meth:`_past_turn`): a spot beyond the range whose
-            shape value mimics one inside it), z_nm and the corrected positions are NaN and
-            in_range is False.
+            A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm (not with
+            ``errors=False``), in_range and cal_particle (index of the calibration particle
+            used). Outside that particle's calibrated range (its monotonic range, or widths
+            over :data:`BEYOND_WIDTH` times its curves' at the z read, or, with the one shape
+            value, fitted wx, wy, ρ nearest its curves beyond that range (:meth:`_past_turn`):
+            a spot beyond the range whose shape value mimics one inside it), z_nm and the
+            corrected positions are NaN and in_range is False.
         """
+        if error_parts and not errors:
+            raise ValueError("error_parts=True needs the errors: leave errors=True.")
+        placed = self._place(spots, amplitude_reference, z_readout)
+        out = {"x_nm": placed.x_nm, "y_nm": placed.y_nm, "z_nm": placed.z}
+        if errors:
+            out = self._errors(placed, z_readout, error_parts)
+        return with_columns(spots, out | {"in_range": placed.in_range, "cal_particle": placed.p})
+
+    def _place(self, spots: pd.DataFrame, amplitude_reference: str, z_readout: str) -> _Placed:
+        """Where :meth:`apply` puts ``spots`` (its checks first), before their errors."""
         check_columns("spots", spots, SPOT_COLUMNS)
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
         cols = _spot_arrays(spots)
         check_widths(np.column_stack([cols["wx"], cols["wy"]]), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         check_choice("z_readout", z_readout, Z_READOUTS)
-        shape = self.shape
         # a spot with any non-finite fit value is a broken fit: never in range
         located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
-        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
         joint = None
         if z_readout == "joint":
             s, joint = self._joint_shape(cols, p)
             ref_scatter = 0.0  # z does not use the amplitude
         else:
-            s = shape_value(shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
+            s = shape_value(self.shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
                             theta=self.local.theta, amplitude_ref=ref)  # fmt: skip
         z, shifts, in_range = self._locate(s, p, cols, located)
         if joint is None and "background" in cols and "dim0_wx" in self.traces.data:
@@ -922,28 +933,39 @@ class Calibration:
         if joint is None:
             in_range &= ~self._past_turn(cols, p, np.where(in_range, z, np.nan))
         z = np.where(in_range, z, np.nan)
-        at = row_weights(self.local.z_nm, p, z)
-        z_err, z_fit = self._z_error(spots, s, p, z, in_range, at, ref, ref_scatter, joint)
-        out, px = {}, self.camera.pixel_size_nm
+        px = self.camera.pixel_size_nm
         dimmed = None  # the spot's own brightness moves its fitted centre (coma)
         if "background" in cols and "dim0_dx" in self.traces.data:
             dimmed = self._position_shifts(cols["amplitude"], cols["background"], p, z)
+        place = {}
         for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
             shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
             if dimmed is not None:
                 shift = shift + dimmed[axis]
+            place[axis] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
+        return _Placed(cols, p, s, z, in_range, place["x"], place["y"], joint, ref, ref_scatter)
+
+    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool) -> dict[str, np.ndarray]:
+        """:meth:`apply`'s columns of the ``placed`` spots, their places with their errors
+        (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm, z_nm, z_err_nm, and with
+        ``error_parts`` z_err_fit_nm and z_err_field_nm."""
+        cols, p, z, in_range = placed.cols, placed.p, placed.z, placed.in_range
+        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
+        at = row_weights(self.local.z_nm, p, z)
+        z_err, z_fit = self._z_error(cols, placed.s, p, z, in_range, at, placed.ref,
+                                     placed.ref_scatter, placed.joint)  # fmt: skip
+        out = {}
+        for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
             err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
-            out[f"{axis}_nm"] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
+            out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_field = self._z_field_error(spots, cols, z, distance, z_readout)
+        z_field = self._z_field_error(cols, z, distance, z_readout)
         out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
         if error_parts:
             out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
             out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
-        out["in_range"] = in_range
-        out["cal_particle"] = p
-        return with_columns(spots, out)
+        return out
 
     def _beyond_range(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """(n,) spots at z (nm) on particles ``p`` whose mean fitted width (``cols``' wx, wy,
@@ -958,8 +980,8 @@ class Calibration:
                 out[found] = width > BEYOND_WIDTH * (np.abs(c["wx"]) + np.abs(c["wy"]))
         return out
 
-    def _z_field_error(self, spots: pd.DataFrame, cols: dict, z: np.ndarray,
-                       distance: np.ndarray, readout: str) -> np.ndarray:  # fmt: skip
+    def _z_field_error(self, cols: dict, z: np.ndarray, distance: np.ndarray,
+                       readout: str) -> np.ndarray:  # fmt: skip
         """The part of σ_z (nm) that varies across the field, as held-out particles measure
         it: the field model's cross-validated error with the dimming correction's transfer
         (at the spot's background ratio c), or, where larger, the error of held-out particles
@@ -968,10 +990,11 @@ class Calibration:
         (with the joint readout, the pairs' alone: the cross-validation and the transfer are
         the shape value's, and the pairs hold both for the joint readout): for another field
         model it counts only beyond the distances its cross-validation held out (above their
-        90th percentile), where the model extrapolates."""
+        90th percentile), where the model extrapolates; ``cols``: the spots' columns
+        (:func:`_spot_arrays`)."""
         c_spot = None
-        if "background" in spots.columns and "dim0_wx" in self.traces.data:
-            c_spot = background_ratio(spots["background"].to_numpy(float), cols["amplitude"],
+        if "background" in cols and "dim0_wx" in self.traces.data:
+            c_spot = background_ratio(cols["background"], cols["amplitude"],
                                       self.camera.readnoise)  # fmt: skip
         pair = self._pair_sigma(z, c_spot, distance, readout)
         if readout == "joint" and self.field_model == "nearest":
@@ -1000,7 +1023,7 @@ class Calibration:
 
     def _z_error(
         self,
-        spots: pd.DataFrame,
+        cols: dict[str, np.ndarray],
         s: np.ndarray,
         p: np.ndarray,
         z: np.ndarray,
@@ -1014,16 +1037,16 @@ class Calibration:
         errors where it carries them, else the calibration's at z) with the particle's model
         error, and the amplitude reference's scatter; and the fit's part alone (NaN where the
         spots carry no fit errors). With the ``joint`` readout, the fit's part is its σ or,
-        where larger, its spread over a second minimum."""
+        where larger, its spread over a second minimum. ``cols``: the spots' columns
+        (:func:`_spot_arrays`), NaN for a correlation they lack."""
         model_part = self._model_sigma("z", p, z, at)
-        fit_part = np.full(len(spots), np.nan)
-        if all(c in spots.columns for c in _ERROR_COLUMNS):
-            params = spots.reindex(columns=list(_PARAMS)).to_numpy(dtype=np.float64)
-            corr = spots.reindex(columns=list(CORRELATION_COLUMNS)).to_numpy(dtype=np.float64)
-            errors = spots[list(_ERROR_COLUMNS)].to_numpy(dtype=np.float64)
+        fit_part = np.full(len(s), np.nan)
+        if all(c in cols for c in _ERROR_COLUMNS):
             if joint is None:  # scaled about each z (noise_scale_by_z)
+                params, errors = _stacked(cols, _PARAMS), _stacked(cols, _ERROR_COLUMNS)
                 fit_part = self._noise_scale_at(z) * self._fit_part_z(
-                    params, errors, corr, p, np.where(in_range, s, 0.0), ref)  # fmt: skip
+                    params, errors, _stacked(cols, CORRELATION_COLUMNS), p,
+                    np.where(in_range, s, 0.0), ref)  # fmt: skip
             else:  # its fit covariance already scaled by noise_scale (joint_readout)
                 fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
             z_err = np.hypot(fit_part, model_part)
@@ -1067,6 +1090,25 @@ def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
     """The spots' columns that :meth:`Calibration.apply` reads (:data:`_READ_COLUMNS`, those
     the table has) as float64 arrays, each read once."""
     return {c: spots[c].to_numpy(dtype=np.float64) for c in _READ_COLUMNS if c in spots.columns}
+
+
+class _Placed(NamedTuple):
+    """Where :meth:`Calibration.apply` puts spots, and what their errors read: the spots'
+    columns ``cols`` (:func:`_spot_arrays`), nearest particles ``p``, shape values ``s``, ``z``
+    (nm, NaN out of range), ``in_range``, the corrected ``x_nm``, ``y_nm``, the joint readout
+    (None with the one shape value) and the amplitude reference ``ref`` with its relative
+    scatter."""
+
+    cols: dict[str, np.ndarray]
+    p: np.ndarray
+    s: np.ndarray
+    z: np.ndarray
+    in_range: np.ndarray
+    x_nm: np.ndarray
+    y_nm: np.ndarray
+    joint: JointZ | None
+    ref: np.ndarray
+    ref_scatter: float
 
 
 def _stacked(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray:

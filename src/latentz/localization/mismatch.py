@@ -215,11 +215,23 @@ def _calibration_se(
     :func:`_held_out_differences` over its spots, weighted by its share of the spots, in
     quadrature."""
     particle = table["cal_particle"].to_numpy(int)
-    differences = _held_out_differences(table, cal, mean_p, square_p)
-    by_particle = pd.DataFrame(dict(zip(("log", "square"), differences,
-                                        strict=True))).groupby(particle)  # fmt: skip
-    weighted = by_particle.median() * by_particle.size().to_numpy()[:, None] / particle.size
-    return tuple(float(v) for v in np.sqrt((weighted**2).sum()))
+    se = []
+    for difference in _held_out_differences(table, cal, mean_p, square_p):
+        median, size = _particle_medians(difference, particle)
+        se.append(float(np.sqrt(np.nansum((median * size / particle.size) ** 2))))
+    return se[0], se[1]
+
+
+def _particle_medians(values: np.ndarray, particle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each particle's median of its spots' ``values`` (NaN left out; NaN where all are) and
+    its number of spots, particles in ascending order."""
+    order = np.lexsort((values, particle))  # by particle, then value, NaN last
+    ordered, keys = values[order], particle[order]
+    first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    size = np.diff(np.r_[first, keys.size])
+    counted = np.add.reduceat(~np.isnan(ordered), first)
+    lower, upper = first + np.maximum(counted - 1, 0) // 2, first + counted // 2
+    return np.where(counted > 0, (ordered[upper] + ordered[lower]) / 2, np.nan), size
 
 
 def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float, float]:

@@ -106,7 +106,7 @@ def on_calibration_pixels(
     size = done.rois.shape[-1]
     table = result_table(done.fit)
     table.attrs["roi_size"] = size
-    located = calibration.apply(table)
+    located = calibration.apply(table, errors=False)
     px = calibration.camera.pixel_size_nm
     x, y = done.fit.params[:, 0], done.fit.params[:, 1]
     place_x, place_y = located["x_nm"].to_numpy() / px, located["y_nm"].to_numpy() / px
