@@ -47,3 +47,13 @@ def one_blas_thread() -> Iterator[None]:
     """
     with _blas().limit(limits=1, user_api="blas"):
         yield
+
+
+def concurrent_kernels_safe() -> bool:
+    """Whether two Python threads may launch numba's parallel kernels at once: true under the
+    "omp" and "tbb" threading layers; "workqueue" aborts the process then. False until a
+    parallel kernel has run in this process (numba chooses its layer at the first launch)."""
+    try:
+        return numba.threading_layer() in ("omp", "tbb")
+    except ValueError:  # no layer chosen yet
+        return False
