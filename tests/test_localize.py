@@ -117,23 +117,25 @@ def test_unsafe_threading_layer_detects_every_chunk_in_this_thread(small, monkey
 
 @pytest.mark.slow
 def test_workqueue_threading_layer_runs_chunks_in_turn_without_aborting(small, tmp_path):
-    # numba's workqueue layer aborts the process when two threads launch parallel kernels
+    # numba's workqueue layer aborts the process when two threads launch parallel kernels: with
+    # no scheduler and with scheduler="threads" the chunks run one after another under it
     frames, _ = small
     np.save(tmp_path / "frames.npy", frames)
     code = (
         "import numba, numpy as np\n"
         "from latentz.localization import localize\n"
-        f"table = localize(np.load({str(tmp_path / 'frames.npy')!r}), chunk_frames=2)\n"
+        f"frames = np.load({str(tmp_path / 'frames.npy')!r})\n"
+        "for scheduler in (None, 'threads'):\n"
+        "    table = localize(frames, chunk_frames=2, scheduler=scheduler)\n"
+        f"    table.to_pickle({str(tmp_path)!r} + f'/{{scheduler}}.pkl')\n"
         "assert numba.threading_layer() == 'workqueue'\n"
-        f"table.to_pickle({str(tmp_path / 'table.pkl')!r})\n"
     )
     env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
-    pd.testing.assert_frame_equal(
-        pd.read_pickle(tmp_path / "table.pkl"),
-        localize(frames, chunk_frames=2, scheduler="synchronous"),
-    )
+    in_turn = localize(frames, chunk_frames=2, scheduler="synchronous")
+    for scheduler in (None, "threads"):
+        pd.testing.assert_frame_equal(pd.read_pickle(tmp_path / f"{scheduler}.pkl"), in_turn)
 
 
 def test_a_single_frame_is_a_movie_of_one(small):

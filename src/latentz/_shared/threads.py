@@ -51,9 +51,7 @@ def one_blas_thread() -> Iterator[None]:
 
 def concurrent_kernels_safe() -> bool:
     """Whether two Python threads may launch numba's parallel kernels at once: true under the
-    "omp" and "tbb" threading layers; "workqueue" aborts the process then. False until a
-    parallel kernel has run in this process (numba chooses its layer at the first launch)."""
-    try:
-        return numba.threading_layer() in ("omp", "tbb")
-    except ValueError:  # no layer chosen yet
-        return False
+    "omp" and "tbb" threading layers; "workqueue" aborts the process then. Asking numba for its
+    thread count starts its threads, choosing the layer, if no parallel kernel has run yet."""
+    numba.get_num_threads()
+    return numba.threading_layer() in ("omp", "tbb")

@@ -191,6 +191,10 @@ def _dtype(column: str) -> str:
 def _scheduler_and_width(scheduler: Any, device: str) -> tuple[Any, int, Any]:
     """(scheduler for dask.compute, chunks per wave, client to close when done)."""
     cores = os.cpu_count() or 1
+    if scheduler in (None, "threads") and not concurrent_kernels_safe():
+        # chunks in threads would launch parallel kernels at once, which numba's workqueue
+        # threading layer answers by aborting the process
+        return "synchronous", 1, None
     if scheduler is None:  # on the GPU (`_overlapped` runs the CPU's chunks)
         # two chunks in threads: one's host work (merging maxima, pair fits) overlaps the
         # other's detection on the GPU; each thread keeps its own device buffers
@@ -248,9 +252,8 @@ def _overlapped(
     The kernels fill every core, but the host work between them (the noise's medians, merging
     maxima, fits of a few ROIs, pair fits, tables) runs on one thread: the next chunk's
     detection fills the other cores meanwhile. Two threads launching parallel kernels at once
-    abort numba's "workqueue" threading layer, so unless `concurrent_kernels_safe` (the first
-    chunk, detected here, makes numba choose its layer) the chunks run one after another. At
-    most two chunks are in memory."""
+    abort numba's "workqueue" threading layer: unless `concurrent_kernels_safe`, the chunks run
+    one after another. At most two chunks are in memory."""
     camera, roi_size, threshold, method, sigma, device, calibration, pairs = options
 
     def detected(span: tuple[int, int]) -> tuple[np.ndarray, Detections]:
