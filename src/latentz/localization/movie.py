@@ -2,9 +2,10 @@
 
 The movie (numpy, dask, or an image file opened lazily) is cut into chunks of frames. Each chunk is
 one task that reads its frames, converts them to photoelectrons, detects emitters and fits them
-(:mod:`latentz.detect`, :mod:`latentz.fit`), and returns a table. Tasks run on a dask scheduler in
-waves of a few chunks, so only a few chunks are in memory at once and a movie larger than memory
-works; the same code runs on a dask.distributed cluster.
+(:mod:`latentz.detect`, :mod:`latentz.fit`), and returns a table. By default, on the CPU, the
+chunks run in this process, the next one detected while this one is fitted; given a scheduler,
+tasks run on it in waves of a few chunks. Either way only a few chunks are in memory at once and
+a movie larger than memory works; the same code runs on a dask.distributed cluster.
 """
 
 from __future__ import annotations
@@ -416,9 +417,10 @@ def localize(
     method : {"mle", "wlsq", "lsq"}, optional
         Estimator, see :func:`latentz.fit.fit_rois`. Default: the calibration's, else "mle".
     scheduler : None, "threads", "processes", "synchronous", str or distributed.Client
-        Where chunks run: None runs them one after another in this process (the numba kernels
-        use every core); a string with ``://`` is a dask.distributed
-        scheduler address (a client is opened and closed here).
+        Where chunks run: None runs them in this process (the numba kernels use every core),
+        detecting the next chunk in a second thread while this one is fitted where numba's
+        threading layer allows it (docs/speed.md); a string with ``://`` is a
+        dask.distributed scheduler address (a client is opened and closed here).
     progress : bool
         Show a progress bar over frames.
     sigma : float
