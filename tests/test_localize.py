@@ -1,6 +1,12 @@
 """localize: Show 3 (detection on a 256 x 256 x 100 movie), input kinds, schedulers, chunks."""
 
+import os
+import subprocess
+import sys
+import threading
+
 import dask.array as da
+import numba
 import numpy as np
 import pandas as pd
 import pytest
@@ -8,9 +14,11 @@ import tifffile
 from movie_truth import emitter_movie, match
 from scipy.spatial import cKDTree
 
+from latentz._shared.threads import concurrent_kernels_safe
 from latentz.camera import Camera
 from latentz.fit import FIT_COLUMNS
 from latentz.localization import LOCALIZE_COLUMNS, localize
+from latentz.localization import movie as movie_module
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +82,60 @@ def test_numpy_dask_and_file_inputs_and_every_chunking_agree(small, tmp_path):
     ]
     for table in variants:
         pd.testing.assert_frame_equal(table, reference)
+
+
+def _detecting_threads(frames: np.ndarray, monkeypatch) -> tuple[pd.DataFrame, set[int]]:
+    """`localize` of ``frames`` in chunks of 2 frames with no scheduler, and the threads that
+    detected its chunks."""
+    threads = set()
+    detect = movie_module._detect_chunk
+
+    def spied(*args):
+        threads.add(threading.get_ident())
+        return detect(*args)
+
+    monkeypatch.setattr(movie_module, "_detect_chunk", spied)
+    return localize(frames, chunk_frames=2), threads
+
+
+def test_overlapped_chunks_give_the_table_of_chunks_in_turn(small, monkeypatch):
+    # with no scheduler, chunk k + 1 is detected in a second thread while chunk k is fitted
+    frames, _ = small
+    overlapped, threads = _detecting_threads(frames, monkeypatch)
+    assert len(threads) == (2 if concurrent_kernels_safe() else 1)
+    in_turn = localize(frames, chunk_frames=2, scheduler="synchronous")
+    pd.testing.assert_frame_equal(overlapped, in_turn)
+
+
+def test_unsafe_threading_layer_detects_every_chunk_in_this_thread(small, monkeypatch):
+    frames, _ = small
+    monkeypatch.setattr(numba, "threading_layer", lambda: "workqueue")
+    table, threads = _detecting_threads(frames, monkeypatch)
+    assert threads == {threading.get_ident()}
+    pd.testing.assert_frame_equal(table, localize(frames, chunk_frames=2, scheduler="synchronous"))
+
+
+@pytest.mark.slow
+def test_workqueue_threading_layer_runs_chunks_in_turn_without_aborting(small, tmp_path):
+    # numba's workqueue layer aborts the process when two threads launch parallel kernels: with
+    # no scheduler and with scheduler="threads" the chunks run one after another under it
+    frames, _ = small
+    np.save(tmp_path / "frames.npy", frames)
+    code = (
+        "import numba, numpy as np\n"
+        "from latentz.localization import localize\n"
+        f"frames = np.load({str(tmp_path / 'frames.npy')!r})\n"
+        "for scheduler in (None, 'threads'):\n"
+        "    table = localize(frames, chunk_frames=2, scheduler=scheduler)\n"
+        f"    table.to_pickle({str(tmp_path)!r} + f'/{{scheduler}}.pkl')\n"
+        "assert numba.threading_layer() == 'workqueue'\n"
+    )
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    in_turn = localize(frames, chunk_frames=2, scheduler="synchronous")
+    for scheduler in (None, "threads"):
+        pd.testing.assert_frame_equal(pd.read_pickle(tmp_path / f"{scheduler}.pkl"), in_turn)
 
 
 def test_a_single_frame_is_a_movie_of_one(small):

@@ -47,3 +47,11 @@ def one_blas_thread() -> Iterator[None]:
     """
     with _blas().limit(limits=1, user_api="blas"):
         yield
+
+
+def concurrent_kernels_safe() -> bool:
+    """Whether two Python threads may launch numba's parallel kernels at once: true under the
+    "omp" and "tbb" threading layers; "workqueue" aborts the process then. Asking numba for its
+    thread count starts its threads, choosing the layer, if no parallel kernel has run yet."""
+    numba.get_num_threads()
+    return numba.threading_layer() in ("omp", "tbb")

@@ -308,7 +308,7 @@ def _filtered_row(frame, offset, gain, scale, row, r, taps, pad, out):
     _row_filter_taps(pad, taps, out)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+@numba.njit(parallel=True, nogil=True, cache=True, fastmath=_FASTMATH)
 def detect_frames(
     frames, offset, gain, scale, factor, weights, taps, wide, limits, floor_scale, mad_to_sigma,
     gain_rows, gain_cols, radius, n_strips, stride, rows, cols, values, counts, floors, samples,

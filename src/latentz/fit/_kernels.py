@@ -624,7 +624,7 @@ def to_internal(natural, p, scale):
     scale[6] = 1.0 - natural[6] * natural[6]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, nogil=True, cache=True)
 def fisher_batch(params, h, w, s2, n_chunks, out):
     """Fisher information (n, 7, 7) in the *natural* parameters of eq. 1 at each row of
     ``params`` (n, 7, natural) in an ``h`` x ``w`` ROI with read-noise variance ``s2``, written
@@ -753,7 +753,7 @@ def fit_roi(
     out_conv[k] = conv
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, nogil=True, cache=True)
 def fit_batch(
     rois,
     start,

@@ -78,7 +78,7 @@ def _sandwich_one(roi, natural, s2, scratch, vecs, mats, out):
     return True
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, nogil=True, cache=True)
 def _sandwich_batch(rois, params, s2, n_chunks, out):
     n, h, w = rois.shape
     for c in numba.prange(n_chunks):

@@ -2,20 +2,23 @@
 
 The movie (numpy, dask, or an image file opened lazily) is cut into chunks of frames. Each chunk is
 one task that reads its frames, converts them to photoelectrons, detects emitters and fits them
-(:mod:`latentz.detect`, :mod:`latentz.fit`), and returns a table. Tasks run on a dask scheduler in
-waves of a few chunks, so only a few chunks are in memory at once and a movie larger than memory
-works; the same code runs on a dask.distributed cluster.
+(:mod:`latentz.detect`, :mod:`latentz.fit`), and returns a table. By default, on the CPU, the
+chunks run in this process, the next one detected while this one is fitted; given a scheduler,
+tasks run on it in waves of a few chunks. Either way only a few chunks are in memory at once and
+a movie larger than memory works; the same code runs on a dask.distributed cluster.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import dask
 import dask.array as da
+import numba
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
@@ -23,9 +26,10 @@ from tqdm.auto import tqdm
 from latentz._shared.engine import resolve_device
 from latentz._shared.medians import row_medians
 from latentz._shared.sanity import check_offset
+from latentz._shared.threads import concurrent_kernels_safe
 from latentz._shared.validate import check_choice, check_int
 from latentz.camera import Camera
-from latentz.detect import cut_photons, detect_arrays
+from latentz.detect import Detections, cut_photons, detect_arrays
 from latentz.fit.api import FIT_COLUMNS, METHODS, result_table
 from latentz.io import as_frames, open_movie, read_frames
 from latentz.localization.crowding import with_crowding_errors
@@ -93,19 +97,49 @@ def _localize_chunk(
     calibration: Calibration | None = None,
     pairs: bool = False,
 ) -> pd.DataFrame:
-    """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"); ``x, y`` in
-    full-frame pixels. With a ``calibration``, spots it reads far from focus are fitted again
-    in its ROI convention (:func:`~latentz.localization.recentre.on_calibration_pixels`). With
-    ``pairs``, close pairs are fitted as two emitters (:mod:`latentz.localization.pairs`, what
-    one emitter looks like from ``calibration``)."""
+    """Detect and fit the frames of one chunk on ``device`` ("cpu" or "cuda"): `_detect_chunk`,
+    then `_fit_chunk`."""
     block = np.asarray(block)  # as stored: both devices convert to photoelectrons themselves
+    found = _detect_chunk(block, camera, roi_size, threshold, sigma, device)
+    return _fit_chunk(block, found, first_frame, camera, roi_size, method, device, calibration,
+                      pairs)  # fmt: skip
+
+
+def _detect_chunk(
+    block: np.ndarray,
+    camera: Camera | None,
+    roi_size: int,
+    threshold: float | None,
+    sigma: float,
+    device: str,
+) -> Detections:
+    """The emitters of one chunk's frames ``block`` (as stored), detected on ``device``."""
     if device == "cuda":
         from latentz.detect._cuda import detect_arrays_cuda as detect_on_device
     else:
         detect_on_device = detect_arrays
-    found = detect_on_device(
+    return detect_on_device(
         block, roi_size=roi_size, threshold=threshold, sigma=sigma, camera=camera
     )
+
+
+def _fit_chunk(
+    block: np.ndarray,
+    found: Detections,
+    first_frame: int,
+    camera: Camera | None,
+    roi_size: int,
+    method: str,
+    device: str,
+    calibration: Calibration | None,
+    pairs: bool,
+) -> pd.DataFrame:
+    """Fit the emitters ``found`` in one chunk's frames ``block`` on ``device``; ``x, y`` in
+    full-frame pixels, ``frame`` counted from ``first_frame``. With a ``calibration``, spots it
+    reads far from focus are fitted again in its ROI convention
+    (:func:`~latentz.localization.recentre.on_calibration_pixels`). With ``pairs``, close pairs
+    are fitted as two emitters (:mod:`latentz.localization.pairs`, what one emitter looks like
+    from ``calibration``)."""
     if len(found.frame) == 0:
         return pd.DataFrame({c: pd.Series(dtype=_dtype(c)) for c in _CHUNK_COLUMNS})
     readnoise = camera.readnoise if camera is not None else 0.0
@@ -158,12 +192,14 @@ def _dtype(column: str) -> str:
 def _scheduler_and_width(scheduler: Any, device: str) -> tuple[Any, int, Any]:
     """(scheduler for dask.compute, chunks per wave, client to close when done)."""
     cores = os.cpu_count() or 1
-    if scheduler is None and device == "cuda":
+    if scheduler in (None, "threads") and not concurrent_kernels_safe():
+        # chunks in threads would launch parallel kernels at once, which numba's workqueue
+        # threading layer answers by aborting the process
+        return "synchronous", 1, None
+    if scheduler is None:  # on the GPU (`_overlapped` runs the CPU's chunks)
         # two chunks in threads: one's host work (merging maxima, pair fits) overlaps the
         # other's detection on the GPU; each thread keeps its own device buffers
         return "threads", 2, None
-    if scheduler is None:  # the kernels use every core: one chunk at a time is faster here
-        return "synchronous", 1, None
     if isinstance(scheduler, str) and scheduler in _LOCAL_SCHEDULERS:
         return scheduler, 1 if scheduler == "synchronous" else cores, None
     if isinstance(scheduler, str):
@@ -196,6 +232,50 @@ def _chunks(n_frames: int, chunk_frames: int) -> Iterator[tuple[int, int]]:
         yield start, min(start + chunk_frames, n_frames)
 
 
+def _read(frames: Any, movie: Any, start: int, stop: int) -> np.ndarray:
+    """Frames ``start:stop`` as stored, read in the calling thread."""
+    return np.asarray(dask.compute(_source(frames, movie, start, stop), scheduler="synchronous")[0])
+
+
+def _done(function: Callable[..., Any], *args: Any) -> Future:
+    """``function(*args)`` run now, in this thread, as a finished future."""
+    future: Future = Future()
+    future.set_result(function(*args))
+    return future
+
+
+def _overlapped(
+    frames: Any, movie: Any, spans: list[tuple[int, int]], options: tuple, bar: tqdm
+) -> list[pd.DataFrame]:
+    """The tables of the chunks ``spans`` ((start, stop) frames), in order; chunk k + 1 is read
+    and detected in a second thread while chunk k is fitted in this one.
+
+    The kernels fill every core, but the host work between them (the noise's medians, merging
+    maxima, fits of a few ROIs, pair fits, tables) runs on one thread: the next chunk's
+    detection fills the other cores meanwhile. Two threads launching parallel kernels at once
+    abort numba's "workqueue" threading layer: unless `concurrent_kernels_safe`, the chunks run
+    one after another. At most two chunks are in memory."""
+    camera, roi_size, threshold, method, sigma, device, calibration, pairs = options
+
+    def detected(span: tuple[int, int]) -> tuple[np.ndarray, Detections]:
+        block = _read(frames, movie, *span)
+        return block, _detect_chunk(block, camera, roi_size, threshold, sigma, device)
+
+    tables = []
+    ahead = _done(detected, spans[0])
+    threads = numba.get_num_threads()  # the caller's, thread-local in numba
+    with ThreadPoolExecutor(1, initializer=numba.set_num_threads, initargs=(threads,)) as pool:
+        submit = pool.submit if concurrent_kernels_safe() else _done
+        for k, (start, stop) in enumerate(spans):
+            block, found = ahead.result()
+            if k + 1 < len(spans):
+                ahead = submit(detected, spans[k + 1])
+            tables.append(_fit_chunk(block, found, start, camera, roi_size, method, device,
+                                     calibration, pairs))  # fmt: skip
+            bar.update(stop - start)
+    return tables
+
+
 def _localize_chunks(
     frames: Any,
     movie: Any,
@@ -205,26 +285,44 @@ def _localize_chunks(
     progress: bool,
     device: str,
 ) -> pd.DataFrame:
-    """Detect and fit chunk by chunk on ``device``, in waves of as many chunks as the scheduler
-    has workers."""
+    """Detect and fit chunk by chunk on ``device``: with no ``scheduler`` on the CPU, each
+    chunk's detection overlapping the previous chunk's fits (`_overlapped`); otherwise in waves
+    of as many chunks as the scheduler has workers (`_in_waves`)."""
+    spans = list(_chunks(movie.shape[0], chunk_frames))
+    with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
+        if scheduler is None and device == "cpu":
+            tables = _overlapped(frames, movie, spans, options, bar)
+        else:
+            tables = _in_waves(frames, movie, spans, options, scheduler, device, bar)
+    return pd.concat(tables, ignore_index=True)
+
+
+def _in_waves(
+    frames: Any,
+    movie: Any,
+    spans: list[tuple[int, int]],
+    options: tuple,
+    scheduler: Any,
+    device: str,
+    bar: tqdm,
+) -> list[pd.DataFrame]:
+    """The tables of the chunks ``spans`` ((start, stop) frames), in order, computed by
+    ``scheduler`` in waves of as many chunks as it has workers."""
     chosen, width, client = _scheduler_and_width(scheduler, device)
     # the options bound to the task's function: dask would walk the calibration's fields and
     # arrays as arguments, looking for collections, on every task
     chunk_task = dask.delayed(partial(_chunk_with, options), pure=False)
     tables = []
-    spans = list(_chunks(movie.shape[0], chunk_frames))
     try:
-        with tqdm(total=movie.shape[0], unit="frame", disable=not progress) as bar:
-            for w0 in range(0, len(spans), width):
-                wave = spans[w0 : w0 + width]
-                tasks = [chunk_task(_source(frames, movie, a, b), a) for a, b in wave]
-                tables.extend(dask.compute(*tasks, scheduler=chosen))
-                bar.update(wave[-1][1] - wave[0][0])
+        for w0 in range(0, len(spans), width):
+            wave = spans[w0 : w0 + width]
+            tasks = [chunk_task(_source(frames, movie, a, b), a) for a, b in wave]
+            tables.extend(dask.compute(*tasks, scheduler=chosen))
+            bar.update(wave[-1][1] - wave[0][0])
     finally:
         if client is not None:
             client.close()
-    table = pd.concat(tables, ignore_index=True)
-    return table
+    return tables
 
 
 def _settings(
@@ -319,9 +417,10 @@ def localize(
     method : {"mle", "wlsq", "lsq"}, optional
         Estimator, see :func:`latentz.fit.fit_rois`. Default: the calibration's, else "mle".
     scheduler : None, "threads", "processes", "synchronous", str or distributed.Client
-        Where chunks run: None runs them one after another in this process (the numba kernels
-        use every core); a string with ``://`` is a dask.distributed
-        scheduler address (a client is opened and closed here).
+        Where chunks run: None runs them in this process (the numba kernels use every core),
+        detecting the next chunk in a second thread while this one is fitted where numba's
+        threading layer allows it (docs/speed.md); a string with ``://`` is a
+        dask.distributed scheduler address (a client is opened and closed here).
     progress : bool
         Show a progress bar over frames.
     sigma : float
