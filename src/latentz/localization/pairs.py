@@ -56,6 +56,11 @@ PAIR_COLUMNS = ("pair", "merged")
 #: Without a calibration, a fit whose long-axis width lies this many robust standard deviations
 #: above the median of the chunk's isolated fits is wider than one emitter.
 WIDTH_MADS = 5.0
+#: With a calibration, a member of a two-emitter fit whose consistency χ² with the curves
+#: (:mod:`.quality`) exceeds that of the one-emitter fit it would replace by more than this
+#: (χ²(3)'s 99th percentile) fits the calibration worse than one emitter does: the split is not
+#: kept (one defocused emitter, not Gaussian, seen as two peaks along its long axis).
+CHI2_WORSE = 11.34
 #: A one-emitter fit whose Pearson chi-square exceeds its degrees of freedom (pixels − 7) by
 #: this many of its standard deviations fits poorly: only those can hold two emitters.
 CHI2_SDS = 3.0
@@ -83,13 +88,14 @@ def _width_limit(table: pd.DataFrame) -> float:
     return median + WIDTH_MADS * 1.4826 * float(np.median(np.abs(width - median)))
 
 
-def _beyond_one(table: pd.DataFrame, calibration: Calibration) -> np.ndarray:
+def _beyond_one(table: pd.DataFrame, calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
     """Which rows of ``table`` the calibration does not locate or finds its widths and ρ far
-    from (``out_of_range`` or ``inconsistent``, :func:`.quality.calibration_flags`)."""
+    from (``out_of_range`` or ``inconsistent``, :func:`.quality.calibration_flags`), and each
+    row's ``consistency_chi2`` (NaN where not located)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # localize applies the calibration again, and warns there
         flags = calibration_flags(calibration.apply(table), calibration)
-    return flags["out_of_range"] | flags["inconsistent"]
+    return flags["out_of_range"] | flags["inconsistent"], flags["consistency_chi2"]
 
 
 def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
@@ -152,10 +158,11 @@ def _candidates(
     seen_pixels: np.ndarray,
     group: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(candidate, beyond): which rows, fitted in ROIs of ``shape`` pixels of which
-    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), and
-    which are shaped beyond one emitter (see the module docstring); the calibration is applied
-    to the poor fits only."""
+    """(candidate, beyond, chi2): which rows, fitted in ROIs of ``shape`` pixels of which
+    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), which
+    are shaped beyond one emitter (see the module docstring), and their consistency χ² with
+    the calibration (NaN without one, or where it does not locate them); the calibration is
+    applied to the poor fits only."""
     half = (min(shape) - 1) / 2
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
     finite &= ~crowded(table, half)
@@ -163,24 +170,29 @@ def _candidates(
     with np.errstate(invalid="ignore"):
         poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
     seen_twice = np.bincount(group, minlength=len(table))[group] > 1
+    chi2 = np.full(len(table), np.nan)
     if calibration is None:
         with np.errstate(invalid="ignore"):
             beyond = poor & (_width(table) > limit)
     else:
         beyond = np.zeros(len(table), bool)
         if poor.any():
-            beyond[poor] = _beyond_one(table[poor], calibration)
+            beyond[poor], chi2[poor] = _beyond_one(table[poor], calibration)
     first = group == np.arange(len(table))
-    return first & (beyond | (poor & seen_twice)), beyond
+    return first & (beyond | (poor & seen_twice)), beyond, chi2
 
 
 def _look_like_one(
-    members: pd.DataFrame, calibration: Calibration | None, limit: float
+    members: pd.DataFrame, calibration: Calibration | None, limit: float, chi2_one: np.ndarray
 ) -> np.ndarray:
-    """Which member rows look like one emitter: located and consistent, or narrow enough."""
+    """Which member rows look like one emitter: located and consistent, and, with a calibration,
+    their consistency χ² at most :data:`CHI2_WORSE` above ``chi2_one``, that of the one-emitter
+    fit they would replace (member order; NaN: no such limit); without one, narrow enough."""
     if calibration is None:
         return _width(members) <= limit
-    return ~_beyond_one(members, calibration)
+    beyond, chi2 = _beyond_one(members, calibration)
+    with np.errstate(invalid="ignore"):
+        return ~beyond & ~(chi2 > chi2_one + CHI2_WORSE)
 
 
 def _member_rows(rows: pd.DataFrame, fit: PairFit, corner: np.ndarray) -> pd.DataFrame:
@@ -238,7 +250,7 @@ def split_pairs(
     limit = _width_limit(table)
     group = copies(*(table[c].to_numpy(float) for c in ("x", "y", "frame")))
     seen = np.isfinite(rois).sum(axis=(1, 2))
-    chosen, beyond = _candidates(table, calibration, limit, rois.shape[1:], seen, group)
+    chosen, beyond, chi2 = _candidates(table, calibration, limit, rois.shape[1:], seen, group)
     candidates = np.flatnonzero(chosen)
     if candidates.size == 0:
         return table
@@ -255,7 +267,7 @@ def split_pairs(
     members["pair"] = np.repeat(candidates[proposed], 2)
     members["merged"] = False
     members.attrs = table.attrs
-    one = _look_like_one(members, calibration, limit)
+    one = _look_like_one(members, calibration, limit, np.repeat(chi2[candidates[proposed]], 2))
     detected = _detected_apart(table, members, group)
     kept = one[0::2] & one[1::2] & ~detected
     table.loc[candidates[proposed][detected], "merged"] = False
