@@ -102,3 +102,53 @@ def test_box_pairs_are_the_points_of_one_frame_within_the_box():
         i, j = box_pairs(a, a_frame, b, b_frame, half)
         assert sorted(zip(i, j, strict=True)) == sorted(map(tuple, expected)), half
         assert np.sum(np.abs(a[i] - b[j]).max(axis=1) == half) > 50  # pairs on the edge
+
+
+def test_one_emitter_beyond_the_calibrated_range_is_not_split_and_merged_pairs_still_are():
+    """With a calibration (astigmatic Gaussian particles of `calib_synthetic`, imaged over
+    ±3000 nm; their shape value is monotonic over about ±1300 nm), poor fits of single emitters
+    1900–2800 nm from focus, at other places than the particles, have the widths and ρ of the
+    calibration's own images there: they are one emitter beyond the range, not a candidate for
+    the two-emitter fit (a real ring PSF there splits into its centre and the rest, each read
+    near focus), and the calibration does not locate them. Poor fits of two touching emitters
+    within the range (one image stretched along the pair, the same optics) are candidates
+    exactly where the calibration flags them, as without the rule."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent / "calibration"))
+    from calib_synthetic import make_traces
+
+    from latentz.calibration import calibrate_traces
+    from latentz.calibration.traces import traces_table
+    from latentz.localization.pairs import _candidates
+    from latentz.localization.quality import calibration_flags
+
+    gx, gy = np.meshgrid(np.arange(25.0, 200.0, 50.0), np.arange(25.0, 200.0, 50.0))
+    places = np.column_stack([gx.ravel(), gy.ravel()])
+    traces, _ = make_traces(len(places), positions=places, noise=0.02, seed=1)
+    cal = calibrate_traces(traces, shape="rho", field_model="nearest", cull=False, tilt=False)
+    ends = cal.local.shapes[cal.shape].z_range[cal.kept]
+    far_z = np.array([-2800.0, -2400.0, -1900.0, 1900.0, 2400.0, 2800.0])
+    assert np.all((far_z[:, None] < ends[None, :, 0]) | (far_z[:, None] > ends[None, :, 1]))
+    rng = np.random.default_rng(5)
+    emitters = places + rng.uniform(10.0, 40.0, places.shape)  # between the particles
+    kinds = np.where(np.arange(len(emitters)) % 2 == 0, "none", "dimer")
+    z = np.concatenate([far_z, [-600.0, -200.0, 200.0, 600.0]])
+    rows = traces_table(make_traces(len(emitters), z_nm=z, positions=emitters, noise=1.0,
+                                    defect=kinds, seed=9)[0])  # fmt: skip
+    single = np.repeat(kinds == "none", z.size) & np.tile(np.isin(z, far_z), len(emitters))
+    dimer = np.repeat(kinds == "dimer", z.size) & ~np.tile(np.isin(z, far_z), len(emitters))
+    table = rows[single | dimer].assign(frame=np.arange((single | dimer).sum()), chi2=1e4,
+                                        close_pair=False).reset_index(drop=True)  # fmt: skip
+    table.attrs["roi_size"] = cal.roi_size
+    single = single[single | dimer]
+    seen = np.full(len(table), cal.roi_size**2)
+    chosen, _ = _candidates(table, cal, np.inf, (cal.roi_size,) * 2, seen, np.arange(len(table)))
+    flags = calibration_flags(cal.apply(table), cal)
+    assert single.sum() == 48 and (~single).sum() == 32
+    assert not chosen[single].any(), table[single & chosen]
+    assert flags["out_of_range"][single].all()
+    flagged = flags["out_of_range"] | flags["inconsistent"]
+    assert flagged[~single].any()  # some touching pairs are shaped beyond one emitter
+    assert np.array_equal(chosen[~single], flagged[~single]), table[~single & (chosen != flagged)]

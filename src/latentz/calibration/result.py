@@ -825,6 +825,22 @@ class Calibration:
             out[found] = (joint.z_nm < lo) | (joint.z_nm > hi)
         return out
 
+    def z_beyond_range(self, spots: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Where one emitter beyond the calibrated range would be: for spots (a fit table: x, y,
+        amplitude, wx, wy, ρ and, where it has them, their ``*_err``, ``*_corr`` and
+        background columns), the z (nm) of the joint readout over all their particle's planes
+        (:meth:`joint_readout`, brightness-corrected) where it lies outside that particle's
+        monotonic range (NaN elsewhere), and the particle. The calibration imaged its own
+        particles there: far from focus a real PSF is a ring that one Gaussian fits poorly."""
+        cols = _spot_arrays(spots)
+        located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
+        p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
+        z = self._joint_shape(cols, p)[1].z_nm
+        lo, hi = self.local.shapes[self.shape].z_range[p].T
+        with np.errstate(invalid="ignore"):
+            outside = located & ((z < lo) | (z > hi))
+        return np.where(outside, z, np.nan), p
+
     def _shape_at(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """The shape value whose inverse z(s) of particle ``p`` gives ``z`` (nm): Newton steps
         on z(s) from the forward model s(z); NaN where z is outside the inverse's range."""

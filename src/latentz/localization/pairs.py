@@ -15,6 +15,14 @@ freedom; at the frame's edge, over the ROI's pixels inside the frame) is a candi
     detection in the ROI) by more than :data:`WIDTH_MADS` robust standard deviations (1.4826
     MAD) above their median: nothing else says how wide one emitter is.
 
+With a calibration, a poor fit is no candidate where it looks like one emitter beyond the
+calibrated range: read over all the calibration's planes it lies beyond the range, and its
+widths and ρ are consistent with the curves there (``consistency_chi2`` of :mod:`.quality` at
+most χ²(2)'s 99th percentile). Far from focus a real PSF is a ring wider than the ROI, which
+one Gaussian fits poorly and two fit better (its bright centre and the rest), yet the
+calibration's own particles look like it there. Such a spot stays one row, with the flags it
+has (``out_of_range`` or ``inconsistent``).
+
 Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`, once per spot. Its two emitters
 replace the one-emitter row, and every other fit that converged on the same spot, when the second
 emitter is significant (:func:`latentz.fit.pairs.is_split`) and each looks like one emitter (located
@@ -39,10 +47,11 @@ import pandas as pd
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from latentz.calibration.readout import CHI2_HELD
 from latentz.fit._model import PARAMS, photons_of
 from latentz.fit.api import CORRELATION_COLUMNS, ERROR_COLUMNS
 from latentz.fit.pairs import PairFit, fit_pairs, is_split
-from latentz.localization.quality import DUPLICATE_PX, calibration_flags
+from latentz.localization.quality import DUPLICATE_PX, calibration_flags, consistency
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -96,6 +105,17 @@ def _beyond_one(table: pd.DataFrame, calibration: Calibration) -> tuple[np.ndarr
         warnings.simplefilter("ignore")  # localize applies the calibration again, and warns there
         flags = calibration_flags(calibration.apply(table), calibration)
     return flags["out_of_range"] | flags["inconsistent"], flags["consistency_chi2"]
+
+
+def _one_beyond_range(table: pd.DataFrame, calibration: Calibration) -> np.ndarray:
+    """Which rows of ``table`` look like one emitter beyond the calibrated range: their
+    wx, wy, ρ read outside it (:meth:`~latentz.calibration.Calibration.z_beyond_range`) are
+    consistent with the curves there (``consistency_chi2`` of :mod:`.quality` at most
+    :data:`~latentz.calibration.readout.CHI2_HELD`, χ²(2)'s 99th percentile)."""
+    z, particle = calibration.z_beyond_range(table)
+    rows = table.assign(z_nm=z, cal_particle=particle)
+    with np.errstate(invalid="ignore"):
+        return consistency(rows, calibration)["consistency_chi2"] <= CHI2_HELD
 
 
 def crowded(table: pd.DataFrame, half: float) -> np.ndarray:
@@ -178,6 +198,8 @@ def _candidates(
         beyond = np.zeros(len(table), bool)
         if poor.any():
             beyond[poor], chi2[poor] = _beyond_one(table[poor], calibration)
+            poor[poor] = ~_one_beyond_range(table[poor], calibration)
+            beyond &= poor
     first = group == np.arange(len(table))
     return first & (beyond | (poor & seen_twice)), beyond, chi2
 

@@ -48,6 +48,7 @@ if TYPE_CHECKING:
 __all__ = [
     "assess",
     "calibration_flags",
+    "consistency",
     "summary",
     "good_rows",
     "QUALITY_COLUMNS",
@@ -118,8 +119,9 @@ def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
     return duplicate, unresolved | merged
 
 
-def _consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:
-    """χ², width ratio and axis mismatch of each spot against the calibration curves at its z."""
+def consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:
+    """χ², width ratio and axis mismatch of each spot against the calibration curves at its z
+    (``z_nm`` on particle ``cal_particle``; NaN where z is)."""
     from latentz.calibration.shape import ellipticity
 
     n = len(spots)
@@ -154,7 +156,7 @@ def calibration_flags(spots: pd.DataFrame, calibration: Calibration) -> dict[str
     z_err = spots["z_err_nm"].to_numpy(float)
     with np.errstate(invalid="ignore"):
         inside = spots["in_range"].to_numpy(bool) & (z_err <= Z_ERR_LIMIT_NM)
-    scores = _consistency(spots, calibration)
+    scores = consistency(spots, calibration)
     with np.errstate(invalid="ignore"):
         inconsistent = scores["consistency_chi2"] > CHI2_LIMIT
     return {"out_of_range": ~inside, "inconsistent": inconsistent, **scores}
