@@ -144,7 +144,7 @@ def test_one_emitter_beyond_the_calibrated_range_is_not_split_and_merged_pairs_s
     table.attrs["roi_size"] = cal.roi_size
     single = single[single | dimer]
     seen = np.full(len(table), cal.roi_size**2)
-    chosen, _ = _candidates(table, cal, np.inf, (cal.roi_size,) * 2, seen, np.arange(len(table)))
+    chosen, *_ = _candidates(table, cal, np.inf, (cal.roi_size,) * 2, seen, np.arange(len(table)))
     flags = calibration_flags(cal.apply(table), cal)
     assert single.sum() == 48 and (~single).sum() == 32
     assert not chosen[single].any(), table[single & chosen]

@@ -177,7 +177,7 @@ def _candidates(
     shape: tuple[int, ...],
     seen_pixels: np.ndarray,
     group: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(candidate, beyond, chi2): which rows, fitted in ROIs of ``shape`` pixels of which
     ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), which
     are shaped beyond one emitter (see the module docstring), and their consistency χ² with
