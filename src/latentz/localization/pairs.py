@@ -18,7 +18,8 @@ freedom; at the frame's edge, over the ROI's pixels inside the frame) is a candi
 Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`, once per spot. Its two emitters
 replace the one-emitter row, and every other fit that converged on the same spot, when the second
 emitter is significant (:func:`latentz.fit.pairs.is_split`) and each looks like one emitter (located
-and consistent with the calibration, or no wider than that limit), unless either lies on another
+and consistent with the calibration, and no farther from its curves than the one-emitter fit by
+more than :data:`CHI2_WORSE`; or no wider than that limit), unless either lies on another
 detection's fit (a neighbour detected by itself) or outside the frame. Both rows carry the same
 ``pair`` number. A candidate that is not split stays as it was: an overlap the two-emitter fit
 cannot resolve. Fits that converged on one spot remain one emitter, which :func:`.quality.assess`
@@ -157,7 +158,7 @@ def _candidates(
     shape: tuple[int, ...],
     seen_pixels: np.ndarray,
     group: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(candidate, beyond, chi2): which rows, fitted in ROIs of ``shape`` pixels of which
     ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), which
     are shaped beyond one emitter (see the module docstring), and their consistency χ² with
