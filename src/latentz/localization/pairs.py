@@ -26,7 +26,8 @@ has (``out_of_range`` or ``inconsistent``).
 Candidates get the two-emitter fit of :mod:`latentz.fit.pairs`, once per spot. Its two emitters
 replace the one-emitter row, and every other fit that converged on the same spot, when the second
 emitter is significant (:func:`latentz.fit.pairs.is_split`) and each looks like one emitter (located
-and consistent with the calibration, or no wider than that limit), unless either lies on another
+and consistent with the calibration, and no farther from its curves than the one-emitter fit by
+more than :data:`CHI2_WORSE`; or no wider than that limit), unless either lies on another
 detection's fit (a neighbour detected by itself) or outside the frame. Both rows carry the same
 ``pair`` number. A candidate that is not split stays as it was: an overlap the two-emitter fit
 cannot resolve. Fits that converged on one spot remain one emitter, which :func:`.quality.assess`
