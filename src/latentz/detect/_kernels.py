@@ -265,9 +265,9 @@ def _is_peak(band, i, j, v, radius, h):
     w = band.shape[1]
     n = band.shape[0]
     for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
-        line = band[ii % n]
+        slot = ii % n
         for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
-            if line[jj] > v:
+            if band[slot, jj] > v:  # indexed in place: a row view per row costs more
                 return False
     return True
 
