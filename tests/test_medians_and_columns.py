@@ -7,12 +7,12 @@ import pandas as pd
 import pytest
 
 from latentz._shared.columns import with_columns
-from latentz._shared.medians import row_medians
+from latentz._shared.medians import row_medians, row_medians_and_mads
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 64, 65, 4096, 4097])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
-def test_row_medians_are_numpys_medians_in_float64(n, dtype):
+def test_row_medians_and_their_absolute_deviations_are_numpys_in_float64(n, dtype):
     rng = np.random.default_rng(n)
     rows = [rng.normal(100, 20, n), rng.integers(95, 105, n), np.full(n, 7.0)]  # ties, constant
     heavy = rng.normal(100, 5, n)
@@ -21,6 +21,20 @@ def test_row_medians_are_numpys_medians_in_float64(n, dtype):
     got = row_medians(values)
     assert got.dtype == np.float64
     assert np.array_equal(got, [np.median(row.astype(np.float64)) for row in values])
+    centre, mads = row_medians_and_mads(values)
+    assert np.array_equal(centre, got)
+    deviations = np.abs(values.astype(np.float64) - got[:, None])
+    assert np.array_equal(mads, [np.median(row) for row in deviations])
+
+
+@pytest.mark.parametrize("row", [[3.0, np.nan, 1.0, 2.0], [np.nan, 4.0, np.nan], [np.nan, np.nan]])
+def test_medians_and_deviations_of_rows_with_nan_are_those_of_two_sorts(row):
+    values = np.array([row], np.float32)
+    centre, mads = row_medians_and_mads(values)
+    expected = row_medians(values)
+    assert np.array_equal(centre, expected, equal_nan=True)
+    deviations = np.abs(values.astype(np.float64) - expected[:, None])
+    assert np.array_equal(mads, row_medians(deviations), equal_nan=True)
 
 
 def test_with_columns_replaces_in_place_appends_in_order_and_keeps_index_and_attrs():

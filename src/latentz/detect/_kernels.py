@@ -265,9 +265,9 @@ def _is_peak(band, i, j, v, radius, h):
     w = band.shape[1]
     n = band.shape[0]
     for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
-        line = band[ii % n]
+        slot = ii % n
         for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
-            if line[jj] > v:
+            if band[slot, jj] > v:  # indexed in place: a row view per row costs more
                 return False
     return True
 
@@ -495,7 +495,8 @@ def merge_and_pair(starts, rows, cols, values, noise, offsets, valleys, dip, hal
     ``keep`` is False for a maximum with no dip of at least ``dip`` noise units towards one of the
     higher maxima near it (``valleys[offsets[p] : offsets[p + 1]]``, the lowest value on the line
     to each): noise ripples on one wide spot, not two emitters; ``close`` is True for a kept
-    maximum with another kept one within ``half`` px (Chebyshev).
+    maximum with another kept one within ``half`` px (Chebyshev). The maxima of each frame are
+    ordered by row: only the rows within reach are scanned.
     """
     for t in range(len(starts) - 1):
         a = starts[t]
@@ -507,11 +508,14 @@ def merge_and_pair(starts, rows, cols, values, noise, offsets, valleys, dip, hal
                 if values[p] - valleys[k] < dip * noise[t]:
                     keep[p] = False
                     break
+        first = a
         for p in range(a, b):
+            first = _rows_near(first, b, rows, p, half)
             if not keep[p]:
                 continue
-            for q in range(a, b):
-                if q != p and keep[q]:
-                    if abs(rows[q] - rows[p]) <= half and abs(cols[q] - cols[p]) <= half:
-                        close[p] = True
-                        break
+            q = first
+            while q < b and rows[q] <= rows[p] + half:  # the rows within reach
+                if q != p and keep[q] and abs(cols[q] - cols[p]) <= half:
+                    close[p] = True
+                    break
+                q += 1

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from scipy import ndimage
 
-from latentz._shared.medians import row_medians
+from latentz._shared.medians import row_medians_and_mads
 from latentz._shared.threads import one_thread_if
 from latentz._shared.validate import check_array, check_int, check_positive
 from latentz.camera import Camera
@@ -181,11 +181,9 @@ def noise_level(filtered: np.ndarray) -> float:
 
 def _noise_levels(samples: np.ndarray) -> np.ndarray:
     """`noise_level` of each frame's strided sample ``samples[t]`` (any shape): 1.4826 x MAD,
-    the medians by sorting (:func:`~latentz._shared.medians.row_medians`; the samples sorted as
-    stored, in float32)."""
-    values = samples.reshape(len(samples), -1)
-    centre = row_medians(values)
-    return _MAD_TO_SIGMA * row_medians(np.abs(values.astype(np.float64) - centre[:, None]))
+    the medians from one sort of the samples as stored, in float32
+    (:func:`~latentz._shared.medians.row_medians_and_mads`)."""
+    return _MAD_TO_SIGMA * row_medians_and_mads(samples.reshape(len(samples), -1))[1]
 
 
 def edge_noise_gain(n: int, weights: np.ndarray) -> np.ndarray:

@@ -267,8 +267,8 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     constant factor (`_row_start`), wherever no value of the row falls below ``exp(-600)``.
 
     With ``full`` False only ``mu_out`` and ``w_out`` are written (for every method), and
-    ``(0, 0)`` is returned; with ``hessian`` False, ``hess`` is not (the score alone: a quarter
-    of the per-pixel sums).
+    ``(0, 0)`` is returned; with ``hessian`` False, ``hess`` is not, nor for MLE the objective
+    (returned as 0): the score alone, a quarter of the per-pixel sums.
     """
     h, w = roi.shape
     x = p[0]
@@ -330,15 +330,17 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
                 w_out[k] = wt
                 old = mu_ref[k] + s2
                 if ds > 0.0:
-                    t = (mus - old) / (mus + old)
-                    if abs(t) <= _SERIES_MAX:
-                        obj_ref += 2.0 * (mus - old - ds * _atanh_series(t))
-                    else:
-                        w_out[k] = -wt
-                        far = True
+                    if hessian:  # the score alone needs no objective
+                        t = (mus - old) / (mus + old)
+                        if abs(t) <= _SERIES_MAX:
+                            obj_ref += 2.0 * (mus - old - ds * _atanh_series(t))
+                        else:
+                            w_out[k] = -wt
+                            far = True
                     res = ds * wt - 1.0
                 else:
-                    obj_ref += 2.0 * (mus - old)
+                    if hessian:
+                        obj_ref += 2.0 * (mus - old)
                     res = -1.0
             elif method == WLSQ:
                 r = d - mu
