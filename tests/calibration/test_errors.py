@@ -86,7 +86,7 @@ def test_the_z_error_reaches_the_lateral_error_through_the_curve_within_its_span
     """σ of Δx'(z') − Δx'(z) for z' normal about z, held within the calibrated span (a spot in
     range lies there): truth by 4·10⁵ draws of z' through the curve itself. Where σ_z spans
     the curve, the slope times σ_z overstates it (weak astigmatism gives σ_z of microns)."""
-    from latentz.calibration.errors import through_z
+    from latentz.calibration.errors import spread_through
     from latentz.calibration.polymodel import PolyModel
 
     grid = np.linspace(-1500.0, 1500.0, 61)
@@ -94,7 +94,7 @@ def test_the_z_error_reaches_the_lateral_error_through_the_curve_within_its_span
     span = np.array([[-1500.0, 1500.0]])
     draws = np.clip(np.random.default_rng(0).normal(z_nm, sigma_z_nm, 400_000), *span[0])
     truth = np.sqrt(np.mean((_bent_shift(draws) - _bent_shift(np.array(z_nm))) ** 2))
-    got = through_z(model, np.array([z_nm]), np.array([sigma_z_nm]), span)[0]
+    got = spread_through(model, np.array([z_nm]), np.array([sigma_z_nm]), span)[0]
     assert got == pytest.approx(truth, rel=0.02)
     if sigma_z_nm >= 800.0:
         slope = abs(model.derivative()(np.array([z_nm]))[0])

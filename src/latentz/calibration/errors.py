@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise", "noise_by_z", "through_z",
+    "measured_noise", "noise_by_z", "spread_through",
 ]  # fmt: skip
 
 #: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
@@ -58,7 +58,7 @@ NOISE_WINDOW = 12
 MIN_PER_BIN = 30
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
-#: Equally spaced nodes (in σ) and normal weights for :func:`through_z`: each node is clipped
+#: Equally spaced nodes (in σ) and normal weights for :func:`spread_through`: each node is clipped
 #: to the span, so the normal's mass beyond an end sits at that end.
 _NODES = np.linspace(-5.0, 5.0, 41)
 _WEIGHTS = np.exp(-0.5 * _NODES**2) / np.exp(-0.5 * _NODES**2).sum()
@@ -182,20 +182,29 @@ def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]
     return floor, slope
 
 
-def through_z(
-    model: PolyModel, z_nm: np.ndarray, sigma_z_nm: np.ndarray, span_nm: np.ndarray
+def spread_through(
+    model: PolyModel,
+    at: np.ndarray,
+    sigma: np.ndarray,
+    span: np.ndarray,
+    limits: np.ndarray | None = None,
 ) -> np.ndarray:
-    """1σ (the model's units, (n,)) of ``model(z') − model(z)`` for z' normal about each row's
-    ``z_nm`` with σ ``sigma_z_nm`` (nm), each z' held within its row's ``span_nm`` ((n, 2),
-    nm; a spot in range lies there). |model'(z)|·σ_z where σ_z is small against the curve's
-    bend; where σ_z spans the curve (weak astigmatism: σ_z of microns), the curve's spread over
-    the span, not a slope times a σ_z many times wider. NaN where σ_z is."""
-    sigma = np.asarray(sigma_z_nm, dtype=np.float64)
+    """1σ (the model's units, (n,)) of ``model(a') − model(a)`` for a' normal about each row's
+    ``at`` with σ ``sigma`` (the model's argument's units), each a' held within its row's
+    ``span`` ((n, 2); a spot in range lies there) and, with ``limits`` ((n, 2)), each value
+    held within them (where a spot in range is placed). |model'(a)|·σ where σ is small
+    against the curve's bend; where σ spans the curve (weak astigmatism: σ_z of microns, or
+    σ_s across the whole inverse z(s)), the curve's spread over the span, not a slope times a
+    σ many times wider, nor the slope of an order-16 polynomial's wiggle (or the zero of its
+    derivative at a turn of one). NaN where σ is."""
+    sigma = np.asarray(sigma, dtype=np.float64)
     offsets = sigma[:, None] * _NODES[None]
-    offsets[:, _NODES == 0] = 0.0  # the centre, also where σ_z is infinite
-    z = np.asarray(z_nm, dtype=np.float64)[:, None]
-    moved = np.clip(z + offsets, span_nm[:, :1], span_nm[:, 1:])
-    spread = model(moved) - model(z[:, 0])[:, None]
+    offsets[:, _NODES == 0] = 0.0  # the centre, also where σ is infinite
+    a = np.asarray(at, dtype=np.float64)[:, None]
+    values = model(np.clip(a + offsets, span[:, :1], span[:, 1:]))
+    if limits is not None:
+        values = np.clip(values, limits[:, :1], limits[:, 1:])
+    spread = values - values[:, _NODES == 0]
     return np.where(np.isnan(sigma), np.nan, np.sqrt(spread**2 @ _WEIGHTS))
 
 

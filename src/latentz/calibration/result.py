@@ -32,7 +32,7 @@ from latentz.calibration.errors import (
     fit_sigma_s,
     measured_noise,
     noise_by_z,
-    through_z,
+    spread_through,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
@@ -463,12 +463,16 @@ class Calibration:
                     p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
         """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
         and correlations (:func:`~latentz.calibration.errors.fit_sigma_s`) and shape values
-        ``s``: σ_s through the slope of particle ``p``'s inverse z(s)."""
+        ``s``: σ_s through particle ``p``'s inverse z(s), its spread over s ± σ_s within the
+        inverse's domain with each z held within p's monotonic range, where a spot in range
+        lies (:func:`~latentz.calibration.errors.spread_through`)."""
         sigma_s = fit_sigma_s(self.shape, params, errors, corr,
                               roi_size=int(self.options.get("roi_size") or 11),
                               readnoise=self.camera.readnoise, theta=self.local.theta,
                               amplitude_ref=ref)  # fmt: skip
-        return np.abs(self._error_model("z")[2][p](s)) * sigma_s
+        model = self.local.shapes[self.shape]
+        inverse = model.inverse[p]
+        return spread_through(inverse, s, sigma_s, inverse.domain, model.z_range[p])
 
     def _calibration_scatter(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The kept particles' calibration images (k, n_z) about their inverse z(s): z (nm),
@@ -1070,12 +1074,12 @@ class Calibration:
     ) -> np.ndarray:
         """σ of the corrected ``axis`` position (nm) of the spots of columns ``cols``: the
         spot's own, the particle's model error and lack of fit, σ_z through the particle's
-        correction (:func:`~latentz.calibration.errors.through_z` over its span), and the field
-        model's."""
+        correction (:func:`~latentz.calibration.errors.spread_through` over its span), and the
+        field model's."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
-        from_z = through_z(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
+        from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in cols:
             own = cols[f"{axis}_err"]
