@@ -379,6 +379,15 @@ class Calibration:
             self._cache["z_span"] = np.stack([lo, hi], axis=1)
         return self._cache["z_span"]
 
+    def _in_range_window(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(n, 2) the z (nm) where a spot placed at ``z`` by particle ``p`` can lie when in
+        range: p's monotonic range (widened to ``z``, which a field model may place a little
+        beyond it), within the span p was imaged over (:attr:`z_span_nm`)."""
+        z_range, span = self.local.shapes[self.shape].z_range[p], self.z_span_nm[p]
+        lo = np.fmax(np.fmin(z_range[:, 0], z), span[:, 0])
+        hi = np.fmin(np.fmax(z_range[:, 1], z), span[:, 1])
+        return np.stack([lo, hi], axis=1)
+
     def _within_span(self, z: np.ndarray) -> np.ndarray:
         lo, hi = self.z_span_nm.T
         with np.errstate(invalid="ignore"):
@@ -563,11 +572,30 @@ class Calibration:
 
     def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
-        field_sigma`), less the local models' part of the held-out errors."""
+        field_sigma`), less the local models' part of the held-out errors; laterally at the
+        held-out particles' true z (:meth:`_at_true_z`)."""
         kind = self.field_model
-        line = self._held_out_line(lambda: self.crossval_of(kind), kind, axis,
-                                   f"crossval_line/{kind}/{axis}")  # fmt: skip
+        line = self._held_out_line(lambda: self._at_true_z(self.crossval_of(kind), axis), kind,
+                                   axis, f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
+
+    def _at_true_z(self, held_out: pd.DataFrame, axis: str) -> pd.DataFrame:
+        """The held-out errors ``held_out`` (:func:`~latentz.calibration.crossval.crossval`)
+        with their lateral ``axis`` errors ("x" or "y"; "z": unchanged) at the plane's true z:
+        less the held-out particle's own Δx'(z) or Δy'(z) between its predicted z and the
+        true one (within its span). A held-out error read at the predicted z holds its own z
+        error (the bright particle's noise, its neighbours' models, the field's) carried
+        through Δ; a spot's σ_z reaches its lateral σ on its own (:meth:`_lateral_error`)."""
+        if axis == "z" or len(held_out) == 0:
+            return held_out
+        p = held_out["particle"].to_numpy(int)
+        z = held_out["z_nm"].to_numpy(float)
+        lo, hi = self.z_span_nm[p].T
+        read = np.clip(z + np.nan_to_num(held_out["err_z_nm"].to_numpy(float)), lo, hi)
+        model = (self.local.dx if axis == "x" else self.local.dy)[p]
+        carried = (model(read) - model(np.clip(z, lo, hi))) * self.camera.pixel_size_nm
+        column = f"err_{axis}_nm"
+        return held_out.assign(**{column: held_out[column].to_numpy(float) + carried})
 
     def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
                        key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
@@ -958,14 +986,15 @@ class Calibration:
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(cols, placed.s, p, z, in_range, at, placed.ref,
                                      placed.ref_scatter, placed.joint)  # fmt: skip
+        z_field = self._z_field_error(cols, z, distance, z_readout)
+        z_total = combine(z_err, z_field)
         out = {}
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
-            err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
+            err = self._lateral_error(axis, cols, p, z, in_range, at, z_total, distance)
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        z_field = self._z_field_error(cols, z, distance, z_readout)
-        out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
+        out["z_err_nm"] = np.where(in_range, z_total, np.nan)
         if error_parts:
             out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
             out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
@@ -1073,13 +1102,15 @@ class Calibration:
         distance: np.ndarray,
     ) -> np.ndarray:
         """σ of the corrected ``axis`` position (nm) of the spots of columns ``cols``: the
-        spot's own, the particle's model error and lack of fit, σ_z through the particle's
-        correction (:func:`~latentz.calibration.errors.spread_through` over its span), and the
-        field model's."""
+        spot's own, the particle's model error and lack of fit, the whole σ_z (``z_err``)
+        through the particle's correction (:func:`~latentz.calibration.errors.spread_through`
+        over the z where a spot in range lies, :meth:`_in_range_window`), and the field
+        model's at the true z (:meth:`_field_sigma`)."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
-        from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
+        from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0),
+                                self._in_range_window(p, z_in))  # fmt: skip
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in cols:
             own = cols[f"{axis}_err"]
