@@ -5,10 +5,11 @@ Three independent parts, added in quadrature:
 
 1. **the fit's precision**: with the joint readout, the curvature of its distance to the
    calibration curves (:mod:`latentz.calibration.readout`); with the one shape value, the
-   errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the slope of the
-   inverse function dz/ds; laterally, the fit's own x, y error, plus the z error carried
-   through Δx'(z), Δy'(z) (:func:`through_z`: the slope times σ_z where σ_z is small against
-   the curve's bend, the curve's spread over the calibrated span where σ_z spans it);
+   errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the inverse
+   function z(s) (:func:`spread_through`: the slope dz/ds times σ_s where σ_s is small against
+   the curve's bend, the curve's spread within the particle's monotonic range where σ_s spans
+   its steep ends); laterally, the fit's own x, y error, plus the whole z error (the field's
+   part too) carried through Δx'(z), Δy'(z) alike, within where a spot in range lies;
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter); laterally also its lack of fit, the part of the residual σ
@@ -18,7 +19,8 @@ Three independent parts, added in quadrature:
    particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
    the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
    distance d to the nearest particle, evaluated at the spot's own distance (laterally no nearer
-   than the distances held out); in z, ``a²`` holds the particles' own heights, which a
+   than the distances held out, and from held-out errors at the true z, whose z error part 1
+   carries); in z, ``a²`` holds the particles' own heights, which a
    held-out error holds twice and a spot near one particle once (:func:`field_sigma`). In z
    it is no smaller than the same line measured on held-out particles seen as emitters of the
    spot's brightness and localized by their 1st-4th nearest other particles
