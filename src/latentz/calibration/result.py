@@ -472,13 +472,19 @@ class Calibration:
                     p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
         """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
         and correlations (:func:`~latentz.calibration.errors.fit_sigma_s`) and shape values
-        ``s``: σ_s through particle ``p``'s inverse z(s), its spread over s ± σ_s within the
-        inverse's domain with each z held within p's monotonic range, where a spot in range
-        lies (:func:`~latentz.calibration.errors.spread_through`)."""
+        ``s``: σ_s through particle ``p``'s inverse z(s) (:meth:`_through_inverse`)."""
         sigma_s = fit_sigma_s(self.shape, params, errors, corr,
                               roi_size=int(self.options.get("roi_size") or 11),
                               readnoise=self.camera.readnoise, theta=self.local.theta,
                               amplitude_ref=ref)  # fmt: skip
+        return self._through_inverse(p, s, sigma_s)
+
+    def _through_inverse(self, p: np.ndarray, s: np.ndarray, sigma_s: np.ndarray) -> np.ndarray:
+        """1σ (nm) of z of shape values ``s`` with errors ``sigma_s`` on particles ``p``'s
+        inverse z(s): its spread over s ± σ_s within the inverse's domain, each z held within
+        p's monotonic range, where a spot in range lies
+        (:func:`~latentz.calibration.errors.spread_through`; not the slope dz/ds times σ_s,
+        which an order-16 inverse's wiggles and steep ends make arbitrary)."""
         model = self.local.shapes[self.shape]
         inverse = model.inverse[p]
         return spread_through(inverse, s, sigma_s, inverse.domain, model.z_range[p])
@@ -1086,8 +1092,8 @@ class Calibration:
         else:
             z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
-            slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
-            z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
+            s_in = np.where(in_range, s, 0.0)
+            z_err = combine(z_err, self._through_inverse(p, s_in, np.abs(s_in) * ref_scatter))
         return z_err, fit_part
 
     def _lateral_error(
