@@ -8,8 +8,8 @@ Three independent parts, added in quadrature:
    errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the inverse
    function z(s) (:func:`spread_through`: the slope dz/ds times σ_s where σ_s is small against
    the curve's bend, the curve's spread within the particle's monotonic range where σ_s spans
-   its steep ends); laterally, the fit's own x, y error, plus the whole z error (the field's
-   part too) carried through Δx'(z), Δy'(z) alike, within where a spot in range lies;
+   its steep ends); laterally, the fit's own x, y error, plus the z error (this part and the
+   local model's) carried through Δx'(z), Δy'(z) alike, within where a spot in range lies;
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter); laterally also its lack of fit, the part of the residual σ
@@ -19,13 +19,13 @@ Three independent parts, added in quadrature:
    particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
    the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
    distance d to the nearest particle, evaluated at the spot's own distance (laterally no nearer
-   than the distances held out, and from held-out errors at the true z, whose z error part 1
-   carries); in z, ``a²`` holds the particles' own heights, which a
-   held-out error holds twice and a spot near one particle once (:func:`field_sigma`). In z
-   it is no smaller than the same line measured on held-out particles seen as emitters of the
-   spot's brightness and localized by their 1st-4th nearest other particles
-   (:func:`~latentz.calibration.dim_crossval.pair_table`), which reaches twice the particles'
-   spacing: a spot beyond the outer particles or in a gap is farther than any held-out one.
+   than the distances held out, and less the held-out particle's own z noise carried through
+   its Δx'(z), Δy'(z), which part 1 carries for a spot); in z, ``a²`` holds the particles'
+   own heights, which a held-out error holds twice and a spot near one particle once
+   (:func:`field_sigma`). In z it is no smaller than the same line measured on held-out
+   particles seen as emitters of the spot's brightness and localized by their 1st-4th
+   nearest other particles (:func:`~latentz.calibration.dim_crossval.pair_table`), which
+   reaches twice the particles' spacing: a spot beyond the outer particles or in a gap is farther than any held-out one.
    That line is ``nearest``'s error; for another field model it counts only beyond the
    distances that model's cross-validation held out.
 
@@ -68,7 +68,8 @@ _WEIGHTS = np.exp(-0.5 * _NODES**2) / np.exp(-0.5 * _NODES**2).sum()
 
 def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
                 distance_px: np.ndarray, *, bin_nm: float = 250.0,
-                model_nm: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+                model_nm: np.ndarray | None = None,
+                noise_nm: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Field-model error (nm, 1σ) of ``model`` on ``axis`` ("x", "y" or "z") at each z and
     distance from the nearest calibration particle.
 
@@ -107,8 +108,12 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     local model's σ). Both are of the size of ``model_nm`` (polynomials fitted alike through as
     many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
     difference clipped at zero): otherwise they are counted twice and grow with distance.
+    ``noise_nm`` (one per row) is any further part of each held-out error that a spot's σ holds
+    elsewhere, subtracted once (laterally: the held-out particle's own z noise carried through
+    its Δx'(z), Δy'(z), which a spot's own σ_z stands for).
     """
-    return field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm).sigma(z_nm, distance_px)
+    line = field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm, noise_nm=noise_nm)
+    return line.sigma(z_nm, distance_px)
 
 
 class FieldLine(NamedTuple):
@@ -135,7 +140,8 @@ class FieldLine(NamedTuple):
 
 
 def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 250.0,
-               model_nm: np.ndarray | None = None) -> FieldLine:  # fmt: skip
+               model_nm: np.ndarray | None = None,
+               noise_nm: np.ndarray | None = None) -> FieldLine:  # fmt: skip
     """The :class:`FieldLine` of :func:`field_sigma` (same arguments, less the spots')."""
     use = ((table["model"] == model) & table["in_range"]).to_numpy()
     rows = table[use]
@@ -147,6 +153,9 @@ def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 25
     if model_nm is not None:
         known = np.asarray(model_nm, dtype=np.float64)[use][order]
         err2 = err2 - 2 * np.where(np.isfinite(known), known, 0.0) ** 2
+    if noise_nm is not None:
+        noise = np.asarray(noise_nm, dtype=np.float64)[use][order]
+        err2 = err2 - np.where(np.isfinite(noise), noise, 0.0) ** 2
     dist2 = rows["distance_px"].to_numpy()[order] ** 2
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))

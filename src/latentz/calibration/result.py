@@ -578,30 +578,37 @@ class Calibration:
 
     def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
-        field_sigma`), less the local models' part of the held-out errors; laterally at the
-        held-out particles' true z (:meth:`_at_true_z`)."""
+        field_sigma`), less the local models' part of the held-out errors and, laterally, the
+        held-out particles' own z noise carried through Δ (:meth:`_carried_noise`)."""
         kind = self.field_model
-        line = self._held_out_line(lambda: self._at_true_z(self.crossval_of(kind), axis), kind,
-                                   axis, f"crossval_line/{kind}/{axis}")  # fmt: skip
+        line = self._held_out_line(lambda: self.crossval_of(kind), kind, axis,
+                                   f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
 
-    def _at_true_z(self, held_out: pd.DataFrame, axis: str) -> pd.DataFrame:
-        """The held-out errors ``held_out`` (:func:`~latentz.calibration.crossval.crossval`)
-        with their lateral ``axis`` errors ("x" or "y"; "z": unchanged) at the plane's true z:
-        less the held-out particle's own Δx'(z) or Δy'(z) between its predicted z and the
-        true one (within its span). A held-out error read at the predicted z holds its own z
-        error (the bright particle's noise, its neighbours' models, the field's) carried
-        through Δ; a spot's σ_z reaches its lateral σ on its own (:meth:`_lateral_error`)."""
-        if axis == "z" or len(held_out) == 0:
-            return held_out
+    def _carried_noise(self, held_out: pd.DataFrame, axis: str) -> np.ndarray:
+        """(rows,) nm: how far the held-out particles' own z noise moves their lateral
+        ``axis`` error (:func:`~latentz.calibration.crossval.crossval` reads Δx', Δy' at the
+        predicted z): the fit's part of σ_z of each held-out image (as :meth:`apply` gives a
+        spot, less the smoothing crossval applies to its shape values) and its local model's
+        σ (the neighbours' inverse, alike), through the particle's Δx'(z) or Δy'(z)
+        (:func:`~latentz.calibration.errors.spread_through`). A spot's own σ_z stands for it
+        (:meth:`_lateral_error`); the field's z error is not in it (a particle's height moves
+        its z read and its Δ alike, and the read z's Δ holds both)."""
+        from latentz.calibration.crossval import smoothed_noise
+
         p = held_out["particle"].to_numpy(int)
         z = held_out["z_nm"].to_numpy(float)
-        lo, hi = self.z_span_nm[p].T
-        read = np.clip(z + np.nan_to_num(held_out["err_z_nm"].to_numpy(float)), lo, hi)
+        fit = np.zeros(p.size)
+        predicted = self._calibration_scatter()[2]
+        if predicted.size and p.size:
+            row = np.clip(np.searchsorted(self.kept, p), 0, self.kept.size - 1)
+            plane = np.argmin(np.abs(self.local.z_nm[p] - z[:, None]), axis=1)
+            fit = np.where(self.kept[row] == p, predicted[row, plane], 0.0)
+            fit = np.nan_to_num(fit) * self._noise_scale_at(z) * smoothed_noise(self, p)
+        noise_z = np.hypot(fit, np.nan_to_num(self._model_sigma("z", p, z)))
         model = (self.local.dx if axis == "x" else self.local.dy)[p]
-        carried = (model(read) - model(np.clip(z, lo, hi))) * self.camera.pixel_size_nm
-        column = f"err_{axis}_nm"
-        return held_out.assign(**{column: held_out[column].to_numpy(float) + carried})
+        window = self._in_range_window(p, z)
+        return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window)
 
     def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
                        key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
@@ -612,10 +619,13 @@ class Calibration:
             held_out = table()
             scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
             rows = held_out["particle"].to_numpy(int)
-            model_nm = None
+            model_nm = noise_nm = None
             if local_models:
                 model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
-            self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm)
+                if axis != "z":
+                    noise_nm = self._carried_noise(held_out, axis)
+            self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm,
+                                          noise_nm=noise_nm)  # fmt: skip
         return self._cache[key]
 
     def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None, distance: np.ndarray,
@@ -992,15 +1002,14 @@ class Calibration:
         at = row_weights(self.local.z_nm, p, z)
         z_err, z_fit = self._z_error(cols, placed.s, p, z, in_range, at, placed.ref,
                                      placed.ref_scatter, placed.joint)  # fmt: skip
-        z_field = self._z_field_error(cols, z, distance, z_readout)
-        z_total = combine(z_err, z_field)
         out = {}
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
-            err = self._lateral_error(axis, cols, p, z, in_range, at, z_total, distance)
+            err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
-        out["z_err_nm"] = np.where(in_range, z_total, np.nan)
+        z_field = self._z_field_error(cols, z, distance, z_readout)
+        out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
         if error_parts:
             out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
             out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
@@ -1108,10 +1117,11 @@ class Calibration:
         distance: np.ndarray,
     ) -> np.ndarray:
         """σ of the corrected ``axis`` position (nm) of the spots of columns ``cols``: the
-        spot's own, the particle's model error and lack of fit, the whole σ_z (``z_err``)
-        through the particle's correction (:func:`~latentz.calibration.errors.spread_through`
-        over the z where a spot in range lies, :meth:`_in_range_window`), and the field
-        model's at the true z (:meth:`_field_sigma`)."""
+        spot's own, the particle's model error and lack of fit, its σ_z before the field's part
+        (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
+        particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
+        where a spot in range lies, :meth:`_in_range_window`), and the field model's
+        (:meth:`_field_sigma`)."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
