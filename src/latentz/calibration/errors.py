@@ -25,9 +25,9 @@ Three independent parts, added in quadrature:
    (:func:`field_sigma`). In z it is no smaller than the same line measured on held-out
    particles seen as emitters of the spot's brightness and localized by their 1st-4th
    nearest other particles (:func:`~latentz.calibration.dim_crossval.pair_table`), which
-   reaches twice the particles' spacing: a spot beyond the outer particles or in a gap is farther than any held-out one.
-   That line is ``nearest``'s error; for another field model it counts only beyond the
-   distances that model's cross-validation held out.
+   reaches twice the particles' spacing: a spot beyond the outer particles or in a gap is
+   farther than any held-out one. That line is ``nearest``'s error; for another field model
+   it counts only beyond the distances that model's cross-validation held out.
 
 Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
 scatter about their z(s) curve less than their fit errors say, the camera's noise model
