@@ -58,6 +58,19 @@ def test_the_local_models_part_is_not_counted_in_the_field_part():
     assert with_local[0] > 1.3 * without[0]
 
 
+def test_a_held_out_noise_that_a_spot_holds_elsewhere_is_taken_off_once():
+    """Lateral held-out errors that also hold the held-out particle's own z noise carried
+    through Δ (known per row, here 25 nm): the line is the field's alone."""
+    table = _table("nearest", floor_nm=10.0, per_px_nm=1.0, local_nm=0.0, seed=5)
+    noise = np.full(N, 25.0)
+    err = np.hypot(table["err_z_nm"], np.random.default_rng(6).normal(0.0, noise))
+    table = table.assign(err_x_nm=err * np.sign(table["err_z_nm"]))
+    d = np.array([20.0])
+    sigma = field_sigma(table, "nearest", "x", np.zeros(1), d, noise_nm=noise)
+    assert sigma[0] == pytest.approx(np.hypot(10.0, 20.0), rel=TOL + 0.1)
+    assert field_sigma(table, "nearest", "x", np.zeros(1), d)[0] > 1.3 * sigma[0]  # 1.5 counted
+
+
 def test_lateral_errors_keep_the_whole_floor_and_are_not_extrapolated_below_the_held_out():
     """Laterally a particle has no offset of its own: a spot meets the whole floor, and below
     the nearest held-out distances (here 5 px, the 10th percentile ~8.5 px) the line is held."""
