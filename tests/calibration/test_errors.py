@@ -58,6 +58,19 @@ def test_the_local_models_part_is_not_counted_in_the_field_part():
     assert with_local[0] > 1.3 * without[0]
 
 
+def test_a_held_out_noise_that_a_spot_holds_elsewhere_is_taken_off_once():
+    """Lateral held-out errors that also hold the held-out particle's own z noise carried
+    through Δ (known per row, here 25 nm): the line is the field's alone."""
+    table = _table("nearest", floor_nm=10.0, per_px_nm=1.0, local_nm=0.0, seed=5)
+    noise = np.full(N, 25.0)
+    err = np.hypot(table["err_z_nm"], np.random.default_rng(6).normal(0.0, noise))
+    table = table.assign(err_x_nm=err * np.sign(table["err_z_nm"]))
+    d = np.array([20.0])
+    sigma = field_sigma(table, "nearest", "x", np.zeros(1), d, noise_nm=noise)
+    assert sigma[0] == pytest.approx(np.hypot(10.0, 20.0), rel=TOL + 0.1)
+    assert field_sigma(table, "nearest", "x", np.zeros(1), d)[0] > 1.3 * sigma[0]  # 1.5 counted
+
+
 def test_lateral_errors_keep_the_whole_floor_and_are_not_extrapolated_below_the_held_out():
     """Laterally a particle has no offset of its own: a spot meets the whole floor, and below
     the nearest held-out distances (here 5 px, the 10th percentile ~8.5 px) the line is held."""
@@ -86,7 +99,7 @@ def test_the_z_error_reaches_the_lateral_error_through_the_curve_within_its_span
     """σ of Δx'(z') − Δx'(z) for z' normal about z, held within the calibrated span (a spot in
     range lies there): truth by 4·10⁵ draws of z' through the curve itself. Where σ_z spans
     the curve, the slope times σ_z overstates it (weak astigmatism gives σ_z of microns)."""
-    from latentz.calibration.errors import through_z
+    from latentz.calibration.errors import spread_through
     from latentz.calibration.polymodel import PolyModel
 
     grid = np.linspace(-1500.0, 1500.0, 61)
@@ -94,7 +107,7 @@ def test_the_z_error_reaches_the_lateral_error_through_the_curve_within_its_span
     span = np.array([[-1500.0, 1500.0]])
     draws = np.clip(np.random.default_rng(0).normal(z_nm, sigma_z_nm, 400_000), *span[0])
     truth = np.sqrt(np.mean((_bent_shift(draws) - _bent_shift(np.array(z_nm))) ** 2))
-    got = through_z(model, np.array([z_nm]), np.array([sigma_z_nm]), span)[0]
+    got = spread_through(model, np.array([z_nm]), np.array([sigma_z_nm]), span)[0]
     assert got == pytest.approx(truth, rel=0.02)
     if sigma_z_nm >= 800.0:
         slope = abs(model.derivative()(np.array([z_nm]))[0])

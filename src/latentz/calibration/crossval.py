@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
-from scipy.signal import savgol_filter
+from scipy.signal import savgol_coeffs, savgol_filter
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 
 __all__ = ["CROSSVAL_COLUMNS", "LOST_SHARE", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS",
            "crossval", "choose_field_model", "crossval_summary", "emitter_sigma_z",
-           "lost_particles", "predict", "resolve_auto"]  # fmt: skip
+           "lost_particles", "predict", "resolve_auto", "smoothed_noise"]  # fmt: skip
 
 CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
                     "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
@@ -96,8 +96,8 @@ def _held_out_planes(cal: Calibration, particles: np.ndarray) -> pd.DataFrame:
     lo, hi = model.z_range[particles, 0:1], model.z_range[particles, 1:2]
     inside = (z >= lo) & (z <= hi)
     vals = np.array(model.values[particles])
-    full = np.isfinite(vals).all(axis=1)
-    if full.any() and vals.shape[1] >= _SMOOTH_PLANES:
+    full = _smoothed(vals)
+    if full.any():
         vals[full] = savgol_filter(vals[full], _SMOOTH_PLANES, 3, axis=1)
     rows, cols = np.nonzero(inside & np.isfinite(vals))
     covered = model.inverse[particles[rows]].contains(vals[rows, cols])
@@ -115,6 +115,21 @@ def _held_out_planes(cal: Calibration, particles: np.ndarray) -> pd.DataFrame:
             "dy": cal.local.dy[p](zz),
         }
     )
+
+
+def _smoothed(values: np.ndarray) -> np.ndarray:
+    """(n,) which rows of shape values (n, n_z) :func:`_held_out_planes` smooths: those with a
+    value at every plane, of at least :data:`_SMOOTH_PLANES` planes."""
+    return np.isfinite(values).all(axis=1) & (values.shape[1] >= _SMOOTH_PLANES)
+
+
+def smoothed_noise(cal: Calibration, particles: np.ndarray) -> np.ndarray:
+    """(n,) the share of a held-out particle's own noise in s (1σ) left in its held-out
+    shape values: the local cubic's centre weights' root sum of squares (0.58) where
+    :func:`_held_out_planes` smooths them, else 1."""
+    gain = float(np.sqrt(np.sum(savgol_coeffs(_SMOOTH_PLANES, 3) ** 2)))
+    values = cal.local.shapes[cal.shape].values[np.asarray(particles, dtype=np.int64)]
+    return np.where(_smoothed(values), gain, 1.0)
 
 
 def crossval(

@@ -5,10 +5,11 @@ Three independent parts, added in quadrature:
 
 1. **the fit's precision**: with the joint readout, the curvature of its distance to the
    calibration curves (:mod:`latentz.calibration.readout`); with the one shape value, the
-   errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the slope of the
-   inverse function dz/ds; laterally, the fit's own x, y error, plus the z error carried
-   through Δx'(z), Δy'(z) (:func:`through_z`: the slope times σ_z where σ_z is small against
-   the curve's bend, the curve's spread over the calibrated span where σ_z spans it);
+   errors of the spot's fitted wx, wy, ρ, A propagated to it, then through the inverse
+   function z(s) (:func:`spread_through`: the slope dz/ds times σ_s where σ_s is small against
+   the curve's bend, the curve's spread within the particle's monotonic range where σ_s spans
+   its steep ends); laterally, the fit's own x, y error, plus the z error (this part and the
+   local model's) carried through Δx'(z), Δy'(z) alike, within where a spot in range lies;
 2. **the local model's σ**: the uncertainty of the calibration particle's polynomial z(s) and
    Δx'(z), Δy'(z), from the residuals of its fit (σ at that z, divided by the square root of the
    number of planes per parameter); laterally also its lack of fit, the part of the residual σ
@@ -18,14 +19,15 @@ Three independent parts, added in quadrature:
    particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
    the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
    distance d to the nearest particle, evaluated at the spot's own distance (laterally no nearer
-   than the distances held out); in z, ``a²`` holds the particles' own heights, which a
-   held-out error holds twice and a spot near one particle once (:func:`field_sigma`). In z
-   it is no smaller than the same line measured on held-out particles seen as emitters of the
-   spot's brightness and localized by their 1st-4th nearest other particles
-   (:func:`~latentz.calibration.dim_crossval.pair_table`), which reaches twice the particles'
-   spacing: a spot beyond the outer particles or in a gap is farther than any held-out one.
-   That line is ``nearest``'s error; for another field model it counts only beyond the
-   distances that model's cross-validation held out.
+   than the distances held out, and less the held-out particle's own z noise carried through
+   its Δx'(z), Δy'(z), which part 1 carries for a spot); in z, ``a²`` holds the particles'
+   own heights, which a held-out error holds twice and a spot near one particle once
+   (:func:`field_sigma`). In z it is no smaller than the same line measured on held-out
+   particles seen as emitters of the spot's brightness and localized by their 1st-4th
+   nearest other particles (:func:`~latentz.calibration.dim_crossval.pair_table`), which
+   reaches twice the particles' spacing: a spot beyond the outer particles or in a gap is
+   farther than any held-out one. That line is ``nearest``'s error; for another field model
+   it counts only beyond the distances that model's cross-validation held out.
 
 Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
 scatter about their z(s) curve less than their fit errors say, the camera's noise model
@@ -48,7 +50,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise", "noise_by_z", "through_z",
+    "measured_noise", "noise_by_z", "spread_through",
 ]  # fmt: skip
 
 #: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
@@ -58,7 +60,7 @@ NOISE_WINDOW = 12
 MIN_PER_BIN = 30
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
-#: Equally spaced nodes (in σ) and normal weights for :func:`through_z`: each node is clipped
+#: Equally spaced nodes (in σ) and normal weights for :func:`spread_through`: each node is clipped
 #: to the span, so the normal's mass beyond an end sits at that end.
 _NODES = np.linspace(-5.0, 5.0, 41)
 _WEIGHTS = np.exp(-0.5 * _NODES**2) / np.exp(-0.5 * _NODES**2).sum()
@@ -66,7 +68,8 @@ _WEIGHTS = np.exp(-0.5 * _NODES**2) / np.exp(-0.5 * _NODES**2).sum()
 
 def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
                 distance_px: np.ndarray, *, bin_nm: float = 250.0,
-                model_nm: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+                model_nm: np.ndarray | None = None,
+                noise_nm: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Field-model error (nm, 1σ) of ``model`` on ``axis`` ("x", "y" or "z") at each z and
     distance from the nearest calibration particle.
 
@@ -105,8 +108,12 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     local model's σ). Both are of the size of ``model_nm`` (polynomials fitted alike through as
     many planes), so ``2 model_nm²`` is subtracted from each squared error before the RMS (the
     difference clipped at zero): otherwise they are counted twice and grow with distance.
+    ``noise_nm`` (one per row) is any further part of each held-out error that a spot's σ holds
+    elsewhere, subtracted once (laterally: the held-out particle's own z noise carried through
+    its Δx'(z), Δy'(z), which a spot's own σ_z stands for).
     """
-    return field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm).sigma(z_nm, distance_px)
+    line = field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm, noise_nm=noise_nm)
+    return line.sigma(z_nm, distance_px)
 
 
 class FieldLine(NamedTuple):
@@ -133,7 +140,8 @@ class FieldLine(NamedTuple):
 
 
 def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 250.0,
-               model_nm: np.ndarray | None = None) -> FieldLine:  # fmt: skip
+               model_nm: np.ndarray | None = None,
+               noise_nm: np.ndarray | None = None) -> FieldLine:  # fmt: skip
     """The :class:`FieldLine` of :func:`field_sigma` (same arguments, less the spots')."""
     use = ((table["model"] == model) & table["in_range"]).to_numpy()
     rows = table[use]
@@ -145,6 +153,9 @@ def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 25
     if model_nm is not None:
         known = np.asarray(model_nm, dtype=np.float64)[use][order]
         err2 = err2 - 2 * np.where(np.isfinite(known), known, 0.0) ** 2
+    if noise_nm is not None:
+        noise = np.asarray(noise_nm, dtype=np.float64)[use][order]
+        err2 = err2 - np.where(np.isfinite(noise), noise, 0.0) ** 2
     dist2 = rows["distance_px"].to_numpy()[order] ** 2
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
@@ -182,20 +193,29 @@ def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]
     return floor, slope
 
 
-def through_z(
-    model: PolyModel, z_nm: np.ndarray, sigma_z_nm: np.ndarray, span_nm: np.ndarray
+def spread_through(
+    model: PolyModel,
+    at: np.ndarray,
+    sigma: np.ndarray,
+    span: np.ndarray,
+    limits: np.ndarray | None = None,
 ) -> np.ndarray:
-    """1σ (the model's units, (n,)) of ``model(z') − model(z)`` for z' normal about each row's
-    ``z_nm`` with σ ``sigma_z_nm`` (nm), each z' held within its row's ``span_nm`` ((n, 2),
-    nm; a spot in range lies there). |model'(z)|·σ_z where σ_z is small against the curve's
-    bend; where σ_z spans the curve (weak astigmatism: σ_z of microns), the curve's spread over
-    the span, not a slope times a σ_z many times wider. NaN where σ_z is."""
-    sigma = np.asarray(sigma_z_nm, dtype=np.float64)
+    """1σ (the model's units, (n,)) of ``model(a') − model(a)`` for a' normal about each row's
+    ``at`` with σ ``sigma`` (the model's argument's units), each a' held within its row's
+    ``span`` ((n, 2); a spot in range lies there) and, with ``limits`` ((n, 2)), each value
+    held within them (where a spot in range is placed). |model'(a)|·σ where σ is small
+    against the curve's bend; where σ spans the curve (weak astigmatism: σ_z of microns, or
+    σ_s across the whole inverse z(s)), the curve's spread over the span, not a slope times a
+    σ many times wider, nor the slope of an order-16 polynomial's wiggle (or the zero of its
+    derivative at a turn of one). NaN where σ is."""
+    sigma = np.asarray(sigma, dtype=np.float64)
     offsets = sigma[:, None] * _NODES[None]
-    offsets[:, _NODES == 0] = 0.0  # the centre, also where σ_z is infinite
-    z = np.asarray(z_nm, dtype=np.float64)[:, None]
-    moved = np.clip(z + offsets, span_nm[:, :1], span_nm[:, 1:])
-    spread = model(moved) - model(z[:, 0])[:, None]
+    offsets[:, _NODES == 0] = 0.0  # the centre, also where σ is infinite
+    a = np.asarray(at, dtype=np.float64)[:, None]
+    values = model(np.clip(a + offsets, span[:, :1], span[:, 1:]))
+    if limits is not None:
+        values = np.clip(values, limits[:, :1], limits[:, 1:])
+    spread = values - values[:, _NODES == 0]
     return np.where(np.isnan(sigma), np.nan, np.sqrt(spread**2 @ _WEIGHTS))
 
 

@@ -32,7 +32,7 @@ from latentz.calibration.errors import (
     fit_sigma_s,
     measured_noise,
     noise_by_z,
-    through_z,
+    spread_through,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
 from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
@@ -379,6 +379,15 @@ class Calibration:
             self._cache["z_span"] = np.stack([lo, hi], axis=1)
         return self._cache["z_span"]
 
+    def _in_range_window(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(n, 2) the z (nm) where a spot placed at ``z`` by particle ``p`` can lie when in
+        range: p's monotonic range (widened to ``z``, which a field model may place a little
+        beyond it), within the span p was imaged over (:attr:`z_span_nm`)."""
+        z_range, span = self.local.shapes[self.shape].z_range[p], self.z_span_nm[p]
+        lo = np.fmax(np.fmin(z_range[:, 0], z), span[:, 0])
+        hi = np.fmin(np.fmax(z_range[:, 1], z), span[:, 1])
+        return np.stack([lo, hi], axis=1)
+
     def _within_span(self, z: np.ndarray) -> np.ndarray:
         lo, hi = self.z_span_nm.T
         with np.errstate(invalid="ignore"):
@@ -463,12 +472,22 @@ class Calibration:
                     p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
         """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
         and correlations (:func:`~latentz.calibration.errors.fit_sigma_s`) and shape values
-        ``s``: σ_s through the slope of particle ``p``'s inverse z(s)."""
+        ``s``: σ_s through particle ``p``'s inverse z(s) (:meth:`_through_inverse`)."""
         sigma_s = fit_sigma_s(self.shape, params, errors, corr,
                               roi_size=int(self.options.get("roi_size") or 11),
                               readnoise=self.camera.readnoise, theta=self.local.theta,
                               amplitude_ref=ref)  # fmt: skip
-        return np.abs(self._error_model("z")[2][p](s)) * sigma_s
+        return self._through_inverse(p, s, sigma_s)
+
+    def _through_inverse(self, p: np.ndarray, s: np.ndarray, sigma_s: np.ndarray) -> np.ndarray:
+        """1σ (nm) of z of shape values ``s`` with errors ``sigma_s`` on particles ``p``'s
+        inverse z(s): its spread over s ± σ_s within the inverse's domain, each z held within
+        p's monotonic range, where a spot in range lies
+        (:func:`~latentz.calibration.errors.spread_through`; not the slope dz/ds times σ_s,
+        which an order-16 inverse's wiggles and steep ends make arbitrary)."""
+        model = self.local.shapes[self.shape]
+        inverse = model.inverse[p]
+        return spread_through(inverse, s, sigma_s, inverse.domain, model.z_range[p])
 
     def _calibration_scatter(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The kept particles' calibration images (k, n_z) about their inverse z(s): z (nm),
@@ -559,11 +578,37 @@ class Calibration:
 
     def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
-        field_sigma`), less the local models' part of the held-out errors."""
+        field_sigma`), less the local models' part of the held-out errors and, laterally, the
+        held-out particles' own z noise carried through Δ (:meth:`_carried_noise`)."""
         kind = self.field_model
         line = self._held_out_line(lambda: self.crossval_of(kind), kind, axis,
                                    f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
+
+    def _carried_noise(self, held_out: pd.DataFrame, axis: str) -> np.ndarray:
+        """(rows,) nm: how far the held-out particles' own z noise moves their lateral
+        ``axis`` error (:func:`~latentz.calibration.crossval.crossval` reads Δx', Δy' at the
+        predicted z): the fit's part of σ_z of each held-out image (as :meth:`apply` gives a
+        spot, less the smoothing crossval applies to its shape values) and its local model's
+        σ (the neighbours' inverse, alike), through the particle's Δx'(z) or Δy'(z)
+        (:func:`~latentz.calibration.errors.spread_through`). A spot's own σ_z stands for it
+        (:meth:`_lateral_error`); the field's z error is not in it (a particle's height moves
+        its z read and its Δ alike, and the read z's Δ holds both)."""
+        from latentz.calibration.crossval import smoothed_noise
+
+        p = held_out["particle"].to_numpy(int)
+        z = held_out["z_nm"].to_numpy(float)
+        fit = np.zeros(p.size)
+        predicted = self._calibration_scatter()[2]
+        if predicted.size and p.size:
+            row = np.clip(np.searchsorted(self.kept, p), 0, self.kept.size - 1)
+            plane = np.argmin(np.abs(self.local.z_nm[p] - z[:, None]), axis=1)
+            fit = np.where(self.kept[row] == p, predicted[row, plane], 0.0)
+            fit = np.nan_to_num(fit) * self._noise_scale_at(z) * smoothed_noise(self, p)
+        noise_z = np.hypot(fit, np.nan_to_num(self._model_sigma("z", p, z)))
+        model = (self.local.dx if axis == "x" else self.local.dy)[p]
+        window = self._in_range_window(p, z)
+        return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window)
 
     def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
                        key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
@@ -574,10 +619,13 @@ class Calibration:
             held_out = table()
             scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
             rows = held_out["particle"].to_numpy(int)
-            model_nm = None
+            model_nm = noise_nm = None
             if local_models:
                 model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
-            self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm)
+                if axis != "z":
+                    noise_nm = self._carried_noise(held_out, axis)
+            self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm,
+                                          noise_nm=noise_nm)  # fmt: skip
         return self._cache[key]
 
     def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None, distance: np.ndarray,
@@ -1069,8 +1117,8 @@ class Calibration:
         else:
             z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
         if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
-            slope_z = self._error_model("z")[2][p](np.where(in_range, s, 0.0))
-            z_err = combine(z_err, np.abs(slope_z * s) * ref_scatter)
+            s_in = np.where(in_range, s, 0.0)
+            z_err = combine(z_err, self._through_inverse(p, s_in, np.abs(s_in) * ref_scatter))
         return z_err, fit_part
 
     def _lateral_error(
@@ -1085,13 +1133,16 @@ class Calibration:
         distance: np.ndarray,
     ) -> np.ndarray:
         """σ of the corrected ``axis`` position (nm) of the spots of columns ``cols``: the
-        spot's own, the particle's model error and lack of fit, σ_z through the particle's
-        correction (:func:`~latentz.calibration.errors.through_z` over its span), and the field
-        model's."""
+        spot's own, the particle's model error and lack of fit, its σ_z before the field's part
+        (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
+        particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
+        where a spot in range lies, :meth:`_in_range_window`), and the field model's
+        (:meth:`_field_sigma`)."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
-        from_z = through_z(model[p], z_in, np.where(in_range, z_err, 0.0), self.z_span_nm[p])
+        from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0),
+                                self._in_range_window(p, z_in))  # fmt: skip
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in cols:
             own = cols[f"{axis}_err"]
