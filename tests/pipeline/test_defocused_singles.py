@@ -1,9 +1,9 @@
-"""Single emitters far below focus stay single and are located: the SMLM 2016 AS bead stack's
-beads 0-2 calibrate (defaults); emitters drawn from the held-out beads 3-5 (their averaged
-images, :class:`latentz.simulate.bead_psf.BeadPSF`), bright (8,000 photons) and far apart (one
-per 32 px cell), 380-600 nm below the stack's focus, where the image is long along one axis
-and not Gaussian. EMCCD frames as in benchmarks/bench_challenge.py. Truth is where each
-emitter was drawn: one emitter per cell."""
+"""Single emitters far below focus stay single: the SMLM 2016 AS bead stack's beads 0-2
+calibrate (defaults); emitters drawn from the held-out beads 3-5 (their averaged images,
+:class:`latentz.simulate.bead_psf.BeadPSF`), bright (8,000 photons) and far apart (one per
+32 px cell), 380-540 nm below the stack's focus, where the calibrated curves still hold them but
+the image is long along one axis and not Gaussian. EMCCD frames as in
+benchmarks/bench_challenge.py. Truth is where each emitter was drawn: one emitter per cell."""
 
 import warnings
 
