@@ -79,12 +79,11 @@ SHAPE_DIM_COLUMNS = tuple(name for name in DIM_COLUMNS if not name.endswith(("_d
 
 
 def dim_fits(
-    rois: np.ndarray, params: np.ndarray, *, method: str, device: str = "auto", max_iter: int = 50
+    rois: np.ndarray, params: np.ndarray, *, method: str, device: str = "auto"
 ) -> dict[str, np.ndarray]:
     """Refits (:data:`DIM_COLUMNS`, each (n,)) of calibration ROIs ``rois`` (n, h, w,
     photoelectrons) fitted as ``params`` (n, 7, natural) over ``c·Â`` more background for each
-    c of :data:`LEVELS` (module notes), of at most ``max_iter`` iterations. NaN where the fit is
-    not usable."""
+    c of :data:`LEVELS` (module notes). NaN where the fit is not usable."""
     from latentz.fit import PARAMS, fit_arrays
 
     amplitude = params[:, 2]
@@ -95,7 +94,7 @@ def dim_fits(
         start = params.copy()
         start[:, 3] += added
         fit = fit_arrays(rois + added[:, None, None], method=method, init=start, device=device,
-                         errors="crlb", max_iter=max_iter)  # fmt: skip
+                         errors="crlb")  # fmt: skip
         usable = ok & fit.converged
         for name in (*_FITTED, "background"):
             value = fit.params[:, PARAMS.index(name)]

@@ -24,12 +24,6 @@ from latentz.fit.api import CORRELATION_COLUMNS
 
 __all__ = ["Traces", "find_particles", "extract_traces", "TRACE_COLUMNS"]
 
-#: Levenberg–Marquardt iterations a calibration fit may take (``fit_rois``' default is 50). Far
-#: from focus a bright particle's image fills the ROI and its likelihood is nearly flat along the
-#: widths: its fit converges, slowly. Cut at 50 it is dropped as not converged, and the
-#: calibrated range ends where the fits are slow, not where the images stop changing with z
-#: (the SMLM 2016 beads, ROI 17 px: 10–90 nm short of it below focus).
-MAX_ITER = 200
 #: Per-plane fit results kept in a :class:`Traces` (the ``fit_rois`` columns that calibration uses).
 TRACE_COLUMNS = (
     "x",
@@ -227,7 +221,6 @@ def _fit_stack(
         # the errors a spot of `localize` carries: Calibration.noise_scale compares them with
         # the scatter of these fits about the calibration curve
         errors="sandwich",
-        max_iter=MAX_ITER,
     )
     out = {}
     for name in (*TRACE_COLUMNS, "converged"):
@@ -235,7 +228,7 @@ def _fit_stack(
             out[name] = table[name].to_numpy().reshape(k, n_z)
     params = table[["x", "y", "amplitude", "background", "wx", "wy", "rho"]].to_numpy()
     dim = dim_fits(photons.reshape(k * n_z, roi_size, roi_size), params, method=method,
-                   device=device, max_iter=MAX_ITER)  # fmt: skip
+                   device=device)  # fmt: skip
     out.update({name: value.reshape(k, n_z) for name, value in dim.items()})
     out["x"] = out["x"] + corners[:, 1, None]
     out["y"] = out["y"] + corners[:, 0, None]
