@@ -71,13 +71,14 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 #: against the truth (2 weak, 2 very weak) double the z error
 #: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
-#: Least resultant statistic |Σ m|² / Σ |m|² at which the axis is judged. Of 200 random draws of
-#: 20, 40, 80 and 160 spots from the right tables of 8 very weakly astigmatic microscopes,
-#: those blamed by the axis without it (5.5, 1.2, 0.1 and 0 %) had 12.7 or less; tables of
-#: 180–370 spots with a calibration turned by 45° that the axis blamed had 11–69 (weak and very
-#: weak astigmatism; the one below 15, weak, at 11, is blamed by its widths too), right ones
-#: 18–194.
-MIN_RESULTANT = 15.0
+#: Least resultant statistic |Σ m|² / Σ |m|² at which the axis is judged. Of 200 random draws
+#: each of 20, 40, 80 and 160 spots from the right tables of 21 microscopes (12 of very weak
+#: astigmatism, 7 weak, 2 strong), the axis alone blamed 108, 47, 1 and 0 (of 4200, 4200, 4200
+#: and 4000), all on very weak ones and at 18.4 or less, 1 of them at 15 or more; tables of
+#: 180–370 spots with a calibration turned by 45° that the axis blamed read 25–69 (very weak
+#: astigmatism; 11 and 15 on two weak microscopes whose widths blame them too), right ones
+#: 18–194 (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
+MIN_RESULTANT = 20.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
 #: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
