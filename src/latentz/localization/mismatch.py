@@ -66,8 +66,9 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 #: calibration is blamed. Right calibrations give within ±5.2° (± 0.4–4.9°; 17 of 21 within
 #: one standard error) on 21 microscopes of 3–90 nm RMS astigmatism and 6 more of 3–8 nm (widths
 #: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives −30° to
-#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on 2 of 14
-#: stronger ones, where the width checks blame 12 of 14; those missed that were measured
+#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on none of 14
+#: stronger ones (the two beyond 10° read a resultant below :data:`MIN_RESULTANT`), where the
+#: width checks blame 12 of 14; those missed that were measured
 #: against the truth (2 weak, 2 very weak) double the z error
 #: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
@@ -77,7 +78,8 @@ AXIS_LIMIT_DEG = 10.0
 #: and 4000), all on very weak ones and at 18.4 or less, 1 of them at 15 or more; tables of
 #: 180–370 spots with a calibration turned by 45° that the axis blamed read 25–69 (very weak
 #: astigmatism; 11 and 15 on two weak microscopes whose widths blame them too), right ones
-#: 18–194 (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
+#: 18–194 (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md). It cannot exceed the
+#: number of spots: a table of 20 is judged by its axis only where all its terms align.
 MIN_RESULTANT = 20.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
