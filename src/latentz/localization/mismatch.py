@@ -9,7 +9,12 @@ z readout cannot absorb are measured over the table's converged, unique, located
   (:func:`latentz.calibration.shape.ellipticity`) points at 2θ for an image elongated along θ.
   Scatter of a spot's E enters this sum once, times the calibration's E, whose sign flips
   through focus, so it widens the angle's standard error (from resampling the spots) rather
-  than turning it. The spots' own summed E² (the axis that
+  than turning it. The angle is judged only where the terms add up to a direction: their
+  resultant's squared length over the sum of their squared lengths, |Σ m|² / Σ |m|² (a
+  Rayleigh statistic weighted by the terms' lengths, 1 on average for terms of random phase),
+  at least :data:`MIN_RESULTANT`. Below it the angle of the sum is undefined and its resampled
+  error too small: tables of 20–80 spots of a very weakly astigmatic microscope then blamed
+  their right calibration. The spots' own summed E² (the axis that
   :func:`~latentz.calibration.shape.astigmatism_angle` finds) holds that scatter squared:
   where it differs in e1 and e2 and outweighs a weak astigmatism, it turns the spots' axis by
   up to 45° against a right calibration's. A wrong calibration reads each z where its rotated
@@ -32,9 +37,9 @@ Each width measurement's standard error holds the spots' scatter and the calibra
 uncertainty: a spot is compared with its nearest particle's curves, which stand for the spot's
 place only as well as neighbouring particles agree (:func:`_calibration_se`).
 
-The calibration is blamed when the axis lies more than :data:`AXIS_LIMIT_DEG` off, the log width
-ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond :data:`BLUR_LIMIT_NM`, by more than
-:data:`SIGNIFICANCE` standard errors. A
+The calibration is blamed when the axis (where judged) lies more than :data:`AXIS_LIMIT_DEG`
+off, the log width ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond
+:data:`BLUR_LIMIT_NM`, by more than :data:`SIGNIFICANCE` standard errors. A
 calibration whose astigmatism lies 90° off is not seen: it reads every z mirrored (z → −z), and
 the shapes fit as well as the right calibration's; only the PSF's asymmetry about focus tells
 them apart.
@@ -61,12 +66,21 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 #: calibration is blamed. Right calibrations give within ±5.2° (± 0.4–4.9°; 17 of 21 within
 #: one standard error) on 21 microscopes of 3–90 nm RMS astigmatism and 6 more of 3–8 nm (widths
 #: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives −30° to
-#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on 2 of 14
-#: stronger ones, where the width checks blame 12 of 14; those missed that were measured
-#: against the truth (2 weak, 2 very weak) double the z error. Tables of 20–80 spots of a very
-#: weakly astigmatic microscope condemn its right calibration up to 14 % of the time
+#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on none of 14
+#: stronger ones (the two beyond 10° read a resultant below :data:`MIN_RESULTANT`), where the
+#: width checks blame 12 of 14; those missed that were measured
+#: against the truth (2 weak, 2 very weak) double the z error
 #: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
+#: Least resultant statistic |Σ m|² / Σ |m|² at which the axis is judged. Of 200 random draws
+#: each of 20, 40, 80 and 160 spots from the right tables of 21 microscopes (12 of very weak
+#: astigmatism, 7 weak, 2 strong), the axis alone blamed 108, 47, 1 and 0 (of 4200, 4200, 4200
+#: and 4000), all on very weak ones and at 18.4 or less, 1 of them at 15 or more; tables of
+#: 180–370 spots with a calibration turned by 45° that the axis blamed read 25–69 (very weak
+#: astigmatism; 11 and 15 on two weak microscopes whose widths blame them too), right ones
+#: 18–194 (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md). It cannot exceed the
+#: number of spots: a table of 20 is judged by its axis only where all its terms align.
+MIN_RESULTANT = 20.0
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
 #: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
@@ -102,6 +116,7 @@ class Mismatch(NamedTuple):
 
     axis_deg: float  #: spots' ellipticity turned from the calibration's at their z, ° in [−45, 45)
     axis_se_deg: float
+    axis_resultant: float  #: |Σ m|² / Σ |m|² of the axis's terms (:data:`MIN_RESULTANT`)
     log_width: float  #: log of the spots' mean width over the calibration's
     log_width_se: float
     blur_nm2: float  #: the calibration's squared widths less the spots', nm²
@@ -115,7 +130,8 @@ class Mismatch(NamedTuple):
 
     @property
     def axis_off(self) -> bool:
-        return abs(self.axis_deg) - SIGNIFICANCE * self.axis_se_deg > AXIS_LIMIT_DEG
+        beyond = abs(self.axis_deg) - SIGNIFICANCE * self.axis_se_deg > AXIS_LIMIT_DEG
+        return bool(self.axis_resultant >= MIN_RESULTANT and beyond)
 
     @property
     def widths_off(self) -> bool:
@@ -135,10 +151,10 @@ def _spin(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return e1 + 1j * e2
 
 
-def _axis(spots: pd.DataFrame, cal: Calibration, seed: int) -> tuple[float, float]:
+def _axis(spots: pd.DataFrame, cal: Calibration, seed: int) -> tuple[float, float, float]:
     """Rotation (rad, in [−π/4, π/4)) of the spots' ellipticity against their particle's curves
-    at their z, half the angle of Σ E_spot · conj(E_curve), and its standard error over
-    :data:`_RESAMPLES` resamples of the spots."""
+    at their z, half the angle of Σ m with m = E_spot · conj(E_curve), its standard error over
+    :data:`_RESAMPLES` resamples of the spots, and the resultant statistic |Σ m|² / Σ |m|²."""
     curves = cal.curves_at(spots["cal_particle"].to_numpy(int), spots["z_nm"].to_numpy(float))
     spot = _spin(*(spots[c].to_numpy(float) for c in ("wx", "wy", "rho")))
     match = spot * np.conj(_spin(curves["wx"], curves["wy"], curves["rho"]))
@@ -146,7 +162,8 @@ def _axis(spots: pd.DataFrame, cal: Calibration, seed: int) -> tuple[float, floa
     angle = _wrap(np.angle(match.sum()) / 2)
     draws = np.random.default_rng(seed).integers(0, match.size, (_RESAMPLES, match.size))
     spread = _wrap(np.angle(match[draws].sum(axis=1)) / 2 - angle)
-    return float(angle), float(np.std(spread))
+    resultant = abs(match.sum()) ** 2 / np.sum(np.abs(match) ** 2)
+    return float(angle), float(np.std(spread)), float(resultant)
 
 
 def _wrap(angle: np.ndarray | float) -> np.ndarray | float:
@@ -255,10 +272,13 @@ def calibration_mismatch(table: pd.DataFrame, calibration: Calibration) -> Misma
     checked = _checked(table)
     n = int(checked.sum())
     if n < MIN_SPOTS:
-        return Mismatch(np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, n)
+        return Mismatch(*[np.nan] * 7, n)
     spots = table[checked]
-    axis, axis_se = np.degrees(_axis(spots, calibration, seed=n))
-    return Mismatch(float(axis), float(axis_se), *_widths(spots, calibration), n)
+    axis, axis_se, resultant = _axis(spots, calibration, seed=n)
+    return Mismatch(
+        float(np.degrees(axis)), float(np.degrees(axis_se)), resultant,
+        *_widths(spots, calibration), n,
+    )  # fmt: skip
 
 
 def _cause(mismatch: Mismatch) -> str:
