@@ -17,9 +17,10 @@ z readout cannot absorb are measured over the table's converged, unique, located
   20–80 spots of a very weakly astigmatic microscope then blamed their right calibration. The
   spots' own summed E² (the axis that :func:`~latentz.calibration.shape.astigmatism_angle`
   finds) holds that scatter squared: where it differs in e1 and e2 and outweighs a weak
-  astigmatism, it turns the spots' axis by up to 45° against a right calibration's. A wrong calibration reads each z where its rotated
-  shapes come nearest the spot's, near focus where its E is small and of either sign, so a 45°
-  rotation reads as 1–30° here (:data:`AXIS_LIMIT_DEG`);
+  astigmatism, it turns the spots' axis by up to 45° against a right calibration's. A wrong
+  calibration reads each z where its rotated shapes come nearest the spot's, near focus where
+  its E is small and of either sign, so a 45° rotation reads as 1–30° here
+  (:data:`AXIS_LIMIT_DEG`);
 - **the widths**, each spot's carried to its calibration particle's brightness by the
   calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
   this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
