@@ -8,6 +8,8 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
 from pathlib import Path
 
 from latentz.validation.family import FAMILY_SIZES
@@ -15,7 +17,7 @@ from latentz.validation.family import FAMILY_SIZES
 
 def run_draws(
     description: str,
-    row_of: Callable[[int, str], dict],
+    row_of: Callable[[int, str, Path | None], dict],
     write: Callable[[list[dict], argparse.Namespace, float], None],
     *,
     out: Path,
@@ -23,17 +25,30 @@ def run_draws(
     first: int,
     size: str,
 ) -> None:
-    """Parse ``--first/--draws/--size/--out`` (defaults as given), then for each seed compute
-    ``row_of(seed, size)``, print it and ``write`` every row so far with the seconds spent."""
+    """Parse ``--first/--draws/--size/--out`` (defaults as given) and ``--renders/--jobs``, then
+    for each seed compute ``row_of(seed, size, renders)`` (``--jobs`` draws at a time, each in
+    its own process), print it and ``write`` every row so far, by seed, with the seconds
+    spent."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--draws", type=int, default=draws)
     parser.add_argument("--first", type=int, default=first, help="seed of the first draw")
     parser.add_argument("--size", default=size, choices=tuple(FAMILY_SIZES))
     parser.add_argument("--out", type=Path, default=out)
+    parser.add_argument(
+        "--renders",
+        type=Path,
+        default=None,
+        help="a folder that keeps each draw's images for later runs",
+    )
+    parser.add_argument("--jobs", type=int, default=1, help="draws run at once")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     start, rows = time.perf_counter(), []
-    for seed in range(args.first, args.first + args.draws):
-        rows.append(row_of(seed, args.size))
-        print(rows[-1], file=sys.stderr, flush=True)
-        write(rows, args, time.perf_counter() - start)
+    seeds = range(args.first, args.first + args.draws)
+    pool = ProcessPoolExecutor(args.jobs, get_context("spawn"), warnings.simplefilter, ("ignore",))
+    with pool:
+        pending = [pool.submit(row_of, seed, args.size, args.renders) for seed in seeds]
+        for done in as_completed(pending):
+            rows = sorted([*rows, done.result()], key=lambda row: row["seed"])
+            print(done.result(), file=sys.stderr, flush=True)
+            write(rows, args, time.perf_counter() - start)

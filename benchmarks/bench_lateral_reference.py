@@ -65,13 +65,13 @@ def coma(modes: dict[str, float]) -> int:
     return round(float(np.hypot(modes["coma_x"], modes["coma_y"])))
 
 
-def row_of(seed: int, size: str) -> dict:
+def row_of(seed: int, size: str, renders: Path | None = None) -> dict:
     start = time.perf_counter()
     draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2), "form": draw.form,
            "astig nm": round(draw.astigmatism_nm), "coma nm": coma(draw.mean_nm),
            "coma field nm": coma(draw.std_nm)}  # fmt: skip
-    data = family_data(draw)
+    data = family_data(draw, renders=renders)
     cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera)
     row |= choices
     if cal is None:

@@ -32,10 +32,10 @@ OUT = Path(__file__).resolve().parent / "results" / "bench_z_readout.md"
 READOUTS = ("shape", "joint")
 
 
-def compare(seed: int, size: str) -> dict:
+def compare(seed: int, size: str, renders: Path | None = None) -> dict:
     """One row: draw ``seed``'s calibration choices and both readouts' scores."""
     draw = draw_microscope(seed, size)
-    data = family_data(draw)
+    data = family_data(draw, renders=renders)
     row = {"seed": seed, "astig nm": round(draw.astigmatism_nm), "form": draw.form}
     cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera)
     row |= choices

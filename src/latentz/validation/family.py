@@ -21,10 +21,14 @@
 
 from __future__ import annotations
 
+import hashlib
+import pickle
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from latentz._shared.atomic import write_bytes_atomic
 from latentz.camera import Camera
 from latentz.validation.datasets import ValidationData, simulate_study
 from latentz.validation.fields import FORMS, MODES, AberrationFields
@@ -50,6 +54,9 @@ FAMILY_SIZES = {
 }  # fmt: skip
 
 VECTORIAL_NA = 0.9
+# the modules whose code images a draw: a render kept by `family_data` is reused only for the
+# same draw and size while their source is unchanged
+RENDER_MODULES = ("datasets", "family", "fields", "microscope")
 
 
 @dataclass(frozen=True)
@@ -172,11 +179,31 @@ def _check_size(size: str) -> None:
         raise ValueError(f"Expected `size` to be one of {tuple(FAMILY_SIZES)}, got {size!r}.")
 
 
-def family_data(draw: Draw, size: str | None = None) -> ValidationData:
+def family_data(draw: Draw, size: str | None = None, renders: Path | None = None) -> ValidationData:
     """Calibration stacks and test frames of ``draw`` at one of :data:`FAMILY_SIZES` (the
-    draw's own if None)."""
+    draw's own if None). With ``renders`` (a folder of your own), read them from there if this
+    draw was imaged before by the same optics code, else image them and keep them there."""
     size = draw.size if size is None else size
     _check_size(size)
+    if renders is None:
+        return _render(draw, size)
+    path = Path(renders) / f"{size}-{draw.seed}-{_render_key(draw, size)}.pkl"
+    if path.exists():
+        return pickle.loads(path.read_bytes())
+    data = _render(draw, size)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(path, pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL))
+    return data
+
+
+def _render_key(draw: Draw, size: str) -> str:
+    """12 hex digits naming the draw, the size and the source of the modules that image it."""
+    folder = Path(__file__).parent
+    sources = b"".join((folder / f"{name}.py").read_bytes() for name in RENDER_MODULES)
+    return hashlib.sha256(f"{draw!r} {size}".encode() + sources).hexdigest()[:12]
+
+
+def _render(draw: Draw, size: str) -> ValidationData:
     p = FAMILY_SIZES[size]
     lo, hi = p["grid"]
     layout = {**p, "grid": int(round(lo + draw.grid_fraction * (hi - lo))),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pandas as pd
@@ -30,13 +31,14 @@ def calibrate_defaults(stacks: Any, z_nm: Any, camera: Camera) -> tuple[Calibrat
     return cal, {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
 
 
-def run_defaults(seed: int, size: str = "full") -> dict:
+def run_defaults(seed: int, size: str = "full", renders: Path | None = None) -> dict:
     """One row for draw ``seed`` at ``size``: its settings; what ``calibrate`` chose with no
     shape, ROI or field model given (or ``fails``, the first line of its error); the spots
     found and in range; z, x and y RMSE (nm) and the 1σ coverage of each axis over every spot in
     range (:func:`~latentz.validation.truth.summary`); the oracle floor's RMSEs (nm) over the
     spots in range in both, latentz's z RMSE over those same spots (``z RMSE, floor's spots``)
-    and their ratio; seconds taken."""
+    and their ratio; seconds taken. ``renders``: a folder that keeps the draw's images
+    (:func:`~latentz.validation.family.family_data`)."""
     start = time.perf_counter()
     draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
@@ -44,7 +46,7 @@ def run_defaults(seed: int, size: str = "full") -> dict:
            "form": draw.form, "astig nm": round(draw.astigmatism_nm),
            "bead nm": round(draw.bead_nm), "z ± nm": round(draw.z_half_nm),
            "step nm": draw.z_step_nm}  # fmt: skip
-    data = family_data(draw)
+    data = family_data(draw, renders=renders)
     row["render s"] = round(time.perf_counter() - start)
     cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera)
     row |= choices
