@@ -242,3 +242,30 @@ def test_dim_high_na_molecules_condemn_a_wrong_calibration_and_never_the_right_o
     else:
         with pytest.warns(LatentzWarning, match="their widths are 1"):
             check_calibration_fits(spots, cal)
+
+
+def test_kept_renders_are_reused_only_for_the_same_draw_size_and_code(tmp_path, monkeypatch):
+    from latentz.validation import family
+
+    made = []
+
+    def render(draw, size):
+        made.append((draw.seed, size))
+        return {"seed": draw.seed, "size": size}
+
+    monkeypatch.setattr(family, "_render", render)
+    first = family_data(DRAWS[5], "ci", renders=tmp_path)
+    again = family_data(DRAWS[5], "ci", renders=tmp_path)
+    assert first == again == {"seed": 5, "size": "ci"} and made == [(5, "ci")]
+    family_data(DRAWS[5], "tiny", renders=tmp_path)
+    family_data(DRAWS[6], "ci", renders=tmp_path)
+    family_data(replace(DRAWS[5], na=0.5), "ci", renders=tmp_path)
+    assert made == [(5, "ci"), (5, "tiny"), (6, "ci"), (5, "ci")]
+    # a change to the imaging code makes the kept render stale
+    source = tmp_path / "src"
+    source.mkdir()
+    for name in family.RENDER_MODULES:
+        (source / f"{name}.py").write_text(f"# {name}, edited\n")
+    monkeypatch.setattr(family, "__file__", str(source / "family.py"))
+    family_data(DRAWS[5], "ci", renders=tmp_path)
+    assert made[-1] == (5, "ci") and len(made) == 5
