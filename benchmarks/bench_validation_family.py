@@ -87,9 +87,11 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
         "# Defaults on a random family of validation microscopes",
         "",
         f"Command: `python benchmarks/bench_validation_family.py --draws {args.draws} "
-        f"--first {args.first} --size {args.size}` ({len(rows)} draws done, "
-        f"{seconds / 60:.0f} min on a shared, loaded 2-core machine; `{args.size}`: "
-        f"{FAMILY_SIZES[args.size]}).",
+        f"--first {args.first} --size {args.size} --jobs {args.jobs}"
+        + (f" --renders {args.renders}" if args.renders else "")
+        + f"` ({len(rows)} draws done, {seconds / 60:.0f} min on a 2-core machine"
+        + (", images read back where kept" if args.renders else "")
+        + f"; `{args.size}`: {FAMILY_SIZES[args.size]}).",
         "",
         "z RMSE, floor and x / y RMSE in nm after one offset and one plane per axis; `cov` is "
         "the share of in-range spots with |error| ≤ the reported 1σ.",
