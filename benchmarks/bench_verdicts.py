@@ -38,6 +38,7 @@ import pandas as pd
 from _rounds import machine, write_results
 from scipy.spatial import cKDTree
 
+from latentz.calibration import Calibration
 from latentz.localization import mismatch, quality
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
@@ -250,9 +251,19 @@ def localized(seeds: range, n_frames: int, cache: Path | None) -> list:
     for locs, truth, cal in raw:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            judged = mismatch.check_calibration_fits(quality.assess(locs, cal), cal)
+            judged = mismatch.check_calibration_fits(verdicts(locs, cal), cal)
         sets.append((judged.assign(neighbour_px=neighbour_px(judged)), truth))
     return sets
+
+
+def verdicts(locs: pd.DataFrame, cal: Calibration) -> pd.DataFrame:
+    """``locs`` (a ``localize`` table) with its verdicts made afresh by the current
+    :mod:`latentz.localization.quality` as ``localize`` makes them: on the errors before the
+    crowding factor (:mod:`latentz.localization.crowding`), which ``cal.apply`` gives again; the
+    table keeps its reported errors."""
+    judged = quality.assess(cal.apply(locs), cal)
+    columns = [c for c in quality.QUALITY_COLUMNS if c in judged]
+    return locs.drop(columns=[c for c in columns if c in locs]).join(judged[columns])
 
 
 def main() -> None:
