@@ -81,9 +81,10 @@ CURVE_SCATTER = 0.10
 AXIAL_TOLERANCE_NM = 500.0
 #: A spot whose z lies beyond AXIAL_TOLERANCE_NM of the truth with more than this chance is not
 #: located: a normal error's share beyond 2σ (so σ_z ≤ 250 nm where the range is unbounded).
-#: Against truth, on 11 very weakly astigmatic microscopes (3-8 nm RMS, seeds 13, 413, 513 and
-#: 8 fresh ones of benchmarks/bench_wrong_calibration.py) the spots of 4.6-10 % predicted chance
-#: were beyond in 7 % (3 of 41), those of 10-20 % in 14 % (3 of 22).
+#: Against truth, on 11 very weakly astigmatic microscopes of
+#: benchmarks/bench_wrong_calibration.py (3-8 nm RMS; seeds 13, 413, 513, 1013, 1113, 1213,
+#: 1313, 1513, 2213, 2613, 2713) the located spots of 4.6-10 % predicted chance lay beyond in
+#: 7 % (3 of 41), those of 10-20 % in 14 % (3 of 22).
 FAR_LIMIT = 2 * float(ndtr(-2.0))
 #: Flags that make a spot not good, in the order they are reported.
 FLAGS = ("not_converged", "duplicate", "unresolved", "out_of_range", "inconsistent")
