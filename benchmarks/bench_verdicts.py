@@ -14,7 +14,7 @@ molecule, never a latentz fit.
 
 For each flag: the share of the correct localizations lost when the rows it flags are dropped
 (matched afresh: a duplicate's twin may take its place) and the share of the wrong rows it
-flags; for the three scored flags (``consistency_chi2`` for ``inconsistent``, ``z_err_nm`` for
+flags; for the three scored flags (``consistency_chi2`` for ``inconsistent``, ``z_far_p`` for
 ``out_of_range``, the distance to the nearest fit for ``unresolved``) the same shares at every
 threshold, with the threshold in use marked. Then ``good``'s share of the correct localizations
 by density, and recall and RMSE of every row and of the good rows by the molecules' distance to
@@ -38,6 +38,7 @@ import pandas as pd
 from _rounds import machine, write_results
 from scipy.spatial import cKDTree
 
+from latentz.calibration import Calibration
 from latentz.localization import mismatch, quality
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
@@ -151,7 +152,7 @@ def figure(sets: list, shares: pd.DataFrame) -> None:
     ax = axes[0]
     for score, limit, below, label in (
         ("consistency_chi2", quality.CHI2_LIMIT, False, "inconsistent: consistency χ²"),
-        ("z_err_nm", quality.Z_ERR_LIMIT_NM, False, "out of range: σ_z"),
+        ("z_far_p", quality.FAR_LIMIT, False, "out of range: chance z is 500 nm off"),
         ("neighbour_px", quality.UNRESOLVED_PX, True, "unresolved: neighbour distance"),
     ):
         curve = threshold_curve(sets, score, limit, below=below)
@@ -250,9 +251,19 @@ def localized(seeds: range, n_frames: int, cache: Path | None) -> list:
     for locs, truth, cal in raw:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            judged = mismatch.check_calibration_fits(quality.assess(locs, cal), cal)
+            judged = mismatch.check_calibration_fits(verdicts(locs, cal), cal)
         sets.append((judged.assign(neighbour_px=neighbour_px(judged)), truth))
     return sets
+
+
+def verdicts(locs: pd.DataFrame, cal: Calibration) -> pd.DataFrame:
+    """``locs`` (a ``localize`` table) with its verdicts made afresh by the current
+    :mod:`latentz.localization.quality` as ``localize`` makes them: on the errors before the
+    crowding factor (:mod:`latentz.localization.crowding`), which ``cal.apply`` gives again; the
+    table keeps its reported errors."""
+    judged = quality.assess(cal.apply(locs), cal)
+    columns = [c for c in quality.QUALITY_COLUMNS if c in judged]
+    return locs.drop(columns=[c for c in columns if c in locs]).join(judged[columns])
 
 
 def main() -> None:
@@ -270,7 +281,7 @@ def main() -> None:
         f"{args.microscopes} random microscopes x densities {DENSITIES} /µm², "
         f"{args.frames} frames of {FIELD[0]} x {FIELD[1]} px each; {n_rows} localizations. "
         f"Thresholds: CHI2_LIMIT {quality.CHI2_LIMIT:g}, CURVE_SCATTER "
-        f"{quality.CURVE_SCATTER:g}, Z_ERR_LIMIT_NM {quality.Z_ERR_LIMIT_NM:g}, UNRESOLVED_PX "
+        f"{quality.CURVE_SCATTER:g}, FAR_LIMIT {quality.FAR_LIMIT:.4f}, UNRESOLVED_PX "
         f"{quality.UNRESOLVED_PX:g}. Took {time.perf_counter() - start:.0f} s on a loaded machine."
     )
     tables = [markdown(shares), markdown(by_density(sets))]

@@ -379,7 +379,7 @@ class Calibration:
             self._cache["z_span"] = np.stack([lo, hi], axis=1)
         return self._cache["z_span"]
 
-    def _in_range_window(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+    def in_range_window(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
         """(n, 2) the z (nm) where a spot placed at ``z`` by particle ``p`` can lie when in
         range: p's monotonic range (widened to ``z``, which a field model may place a little
         beyond it), within the span p was imaged over (:attr:`z_span_nm`)."""
@@ -607,7 +607,7 @@ class Calibration:
             fit = np.nan_to_num(fit) * self._noise_scale_at(z) * smoothed_noise(self, p)
         noise_z = np.hypot(fit, np.nan_to_num(self._model_sigma("z", p, z)))
         model = (self.local.dx if axis == "x" else self.local.dy)[p]
-        window = self._in_range_window(p, z)
+        window = self.in_range_window(p, z)
         return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window)
 
     def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
@@ -1136,13 +1136,13 @@ class Calibration:
         spot's own, the particle's model error and lack of fit, its σ_z before the field's part
         (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
         particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
-        where a spot in range lies, :meth:`_in_range_window`), and the field model's
+        where a spot in range lies, :meth:`in_range_window`), and the field model's
         (:meth:`_field_sigma`)."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
         from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0),
-                                self._in_range_window(p, z_in))  # fmt: skip
+                                self.in_range_window(p, z_in))  # fmt: skip
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in cols:
             own = cols[f"{axis}_err"]
