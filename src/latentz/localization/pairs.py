@@ -136,8 +136,8 @@ def box_pairs(
     one frame within ``half`` px of each other in x and in y; points that are not finite have
     none. Found by sorting ``b`` on (frame, x) and reading, for each point of ``a``, the run of
     ``b`` in its frame within ``half`` in x: no tree, no Python loop."""
-    a_ok = np.flatnonzero(np.isfinite(a).all(axis=1))
-    b_ok = np.flatnonzero(np.isfinite(b).all(axis=1))
+    a_ok = np.flatnonzero(np.isfinite(a[:, 0]) & np.isfinite(a[:, 1]))
+    b_ok = np.flatnonzero(np.isfinite(b[:, 0]) & np.isfinite(b[:, 1]))
     if a_ok.size == 0 or b_ok.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     # one sort key: the frames laid end to end along x, each wider than its points and reach
@@ -154,7 +154,9 @@ def box_pairs(
     i = np.repeat(a_ok, count)
     run_start = np.repeat(lo - (np.cumsum(count) - count), count)
     j = b_sorted[run_start + np.arange(count.sum())]
-    keep = (a_frame[i] == b_frame[j]) & np.all(np.abs(a[i] - b[j]) <= half, axis=1)
+    # x and y tested apart: np.all over an axis of two took 7x longer than the rest here
+    keep = (a_frame[i] == b_frame[j]) & (np.abs(a[i, 0] - b[j, 0]) <= half)
+    keep &= np.abs(a[i, 1] - b[j, 1]) <= half
     return i[keep], j[keep]
 
 
