@@ -544,13 +544,16 @@ def _pass(
         rows = np.empty((n * strips, cap), np.int64)
         cols = np.empty((n * strips, cap), np.int64)
         values = np.empty((n * strips, cap), np.float32)
-        _k.detect_frames(
-            chunk.frames, chunk.offset, chunk.gain, chunk.scale, chunk.factor, chunk.weights,
-            tuple(chunk.weights), wide, limits.astype(np.float32), floor_scale,
-            _MAD_TO_SIGMA, gain_rows, gain_cols, min_distance, strips,
-            noise_stride((height, width)), rows, cols, values, counts, floors, samples,
-            chunk.background,
-        )  # fmt: skip
+        # threads take the tasks one at a time: one slowed by other work (the fits of the chunk
+        # before, in another thread) holds up no other
+        with numba.parallel_chunksize(1):
+            _k.detect_frames(
+                chunk.frames, chunk.offset, chunk.gain, chunk.scale, chunk.factor, chunk.weights,
+                tuple(chunk.weights), wide, limits.astype(np.float32), floor_scale,
+                _MAD_TO_SIGMA, gain_rows, gain_cols, min_distance, strips,
+                noise_stride((height, width)), rows, cols, values, counts, floors, samples,
+                chunk.background,
+            )  # fmt: skip
         if counts.max(initial=0) <= cap:
             break
         cap = int(counts.max())
