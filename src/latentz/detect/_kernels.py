@@ -1,4 +1,4 @@
-"""numba kernels of detection: camera transform, band-pass, noise, local maxima, merging.
+"""numba kernels of detection: camera transform, band-pass, noise, local maxima, merging, ROIs.
 
 The NumPy reference twins are :func:`latentz.detect.band_pass`, :func:`latentz.detect.noise_level`
 and :func:`latentz.detect.find_peaks`; the filter is defined once, by
