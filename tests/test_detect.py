@@ -86,6 +86,25 @@ def test_rois_are_cut_around_maxima_and_shifted_at_edges():
         assert r0 <= found.row[k] < r0 + 9 and c0 <= found.col[k] < c0 + 9
 
 
+def test_cut_rois_hold_the_pixels_where_they_lie_and_nan_outside_the_frame():
+    """Each pixel of a 3 x 20 x 30 stack holds its own code (frame, row, column): every ROI
+    pixel is the code of where it lies, NaN where it lies past the frame's edge (corners up to
+    5 px outside), for uint16, float32 and read-only stacks."""
+    t, r, c = np.indices((3, 20, 30))
+    code = 1000 * t + 40 * r + c
+    rng = np.random.default_rng(5)
+    frame = rng.integers(0, 3, 200)
+    row0, col0 = rng.integers(-5, 20, 200), rng.integers(-5, 30, 200)
+    rows, cols = row0[:, None, None] + np.arange(5)[:, None], col0[:, None, None] + np.arange(5)
+    inside = (rows >= 0) & (rows < 20) & (cols >= 0) & (cols < 30)
+    want = np.where(inside, 1000 * frame[:, None, None] + 40 * rows + cols, np.nan)
+    assert 0 < inside.mean() < 1
+    read_only = code.astype(np.float64)
+    read_only.flags.writeable = False
+    for stack in (code.astype(np.uint16), code.astype(np.float32), read_only):
+        np.testing.assert_array_equal(cut_rois(stack, frame, row0, col0, 5), want)
+
+
 def test_close_pairs_are_flagged_and_isolated_spots_are_not():
     frame = _spot_frame([(20.0, 20.0), (25.0, 22.0), (45.0, 45.0)])
     table = detect(frame, roi_size=11)

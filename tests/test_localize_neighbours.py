@@ -75,3 +75,25 @@ def test_neighbour_light_is_the_other_spots_image_inside_the_roi():
     u, v = (cols + 20 - 20.0) / 1.3, (rows + 16 - 20.0) / 1.3
     np.testing.assert_allclose(light[1], 100.0 * np.exp(-0.5 * (u**2 + v**2)), rtol=1e-12)
     assert not light[2].any()
+
+
+def test_a_roi_receives_the_sum_of_all_its_neighbours_light():
+    """Three fits around a fourth, each within reach of its 11 px ROI (9 px off in x and in y:
+    REACH_PX = 4 beyond the ROI's half width) and 18 px from each other: the centre's ROI
+    receives the three Gaussians summed, each other ROI the centre's alone."""
+    centre = [50.0, 50.0, 200.0, 5.0, 1.4, 1.4, 0.0]
+    outer = [[59.0, 41.0, 100.0], [41.0, 41.0, 300.0], [50.0, 59.0, 50.0]]
+    params = np.array([centre] + [[x, y, a, 5.0, 1.2, 1.2, 0.0] for x, y, a in outer])
+    corner = params[:, :2] - 5
+    light = neighbour_light(params, np.zeros(4, int), corner, (11, 11))
+    rows, cols = np.indices((11, 11), dtype=float)
+
+    def gaussian(k: int, into: int) -> np.ndarray:
+        """Fit k's Gaussian, without its background, on the pixels of ROI ``into``."""
+        x, y, amplitude, _, wx, wy, _ = params[k]
+        u, v = (cols + corner[into, 0] - x) / wx, (rows + corner[into, 1] - y) / wy
+        return amplitude * np.exp(-0.5 * (u**2 + v**2))
+
+    np.testing.assert_allclose(light[0], sum(gaussian(k, 0) for k in (1, 2, 3)), rtol=1e-12)
+    for k in (1, 2, 3):
+        np.testing.assert_allclose(light[k], gaussian(0, k), rtol=1e-12)

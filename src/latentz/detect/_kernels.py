@@ -1,4 +1,4 @@
-"""numba kernels of detection: camera transform, band-pass, noise, local maxima, merging.
+"""numba kernels of detection: camera transform, band-pass, noise, local maxima, merging, ROIs.
 
 The NumPy reference twins are :func:`latentz.detect.band_pass`, :func:`latentz.detect.noise_level`
 and :func:`latentz.detect.find_peaks`; the filter is defined once, by
@@ -519,3 +519,18 @@ def merge_and_pair(starts, rows, cols, values, noise, offsets, valleys, dip, hal
                     close[p] = True
                     break
                 q += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def cut_rois(stack, frame, row0, col0, out):
+    """``out[k]`` (float64): the pixels of ``stack[frame[k]]`` from row ``row0[k]`` and column
+    ``col0[k]`` on, NaN where they lie outside the frame."""
+    h, w = stack.shape[1], stack.shape[2]
+    size_r, size_c = out.shape[1], out.shape[2]
+    for k in range(out.shape[0]):
+        pixels = stack[frame[k]]
+        for i in range(size_r):
+            r = row0[k] + i
+            for j in range(size_c):
+                c = col0[k] + j
+                out[k, i, j] = pixels[r, c] if 0 <= r < h and 0 <= c < w else np.nan

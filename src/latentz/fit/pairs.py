@@ -3,9 +3,11 @@
 Where one Gaussian of eq. 1 fits a ROI poorly, :func:`fit_pairs` fits the sum of two, each with
 its own position, amplitude, widths and ρ, over one shared background (13 parameters), by
 Poisson maximum likelihood (Levenberg–Marquardt on the Fisher scoring matrix, read noise by
-``d + s^2 ~ Poisson(mu + s^2)`` as in :mod:`latentz.fit.api`), vectorised over ROIs. It starts
-twice: the one-emitter fit split along its long axis, and two round emitters at the ROI's two
-brightest peaks; the start that ends with the higher likelihood wins.
+``d + s^2 ~ Poisson(mu + s^2)`` as in :mod:`latentz.fit.api`), in the numba kernel
+:func:`latentz.fit._pair_kernels.pair_fits`, whose NumPy twin, vectorised over ROIs, is
+:func:`_levenberg_marquardt`. It starts twice: the one-emitter fit split along its long axis, and
+two round emitters at the ROI's two brightest peaks; the start that ends with the higher
+likelihood wins.
 
 :func:`is_split` keeps the second emitter, as the multi-emitter fitting of ThunderSTORM and SMAP
 does, when it raises the likelihood significantly: the likelihood ratio ``2 (l_2 - l_1)`` above
@@ -25,11 +27,14 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from scipy.special import gammaln
 
+from latentz._shared.threads import SMALL_BATCH, one_thread_if
 from latentz._shared.validate import check_choice
 from latentz.fit._model import N_PARAMS, model_and_jacobian, photons_of
+from latentz.fit._pair_kernels import pair_fits
 from latentz.fit.api import CORRELATED, correlations_of
 
 __all__ = ["PairFit", "fit_pairs", "is_split", "LR_LIMIT", "MIN_SHARE", "MIN_SEPARATION_PX"]
@@ -45,7 +50,7 @@ MIN_SHARE = 0.1
 MIN_SEPARATION_PX = 1.0
 _N = 2 * 6 + 1  # per emitter x, y, A, log wx, log wy, atanh rho; then the shared background
 _W_MIN, _RHO_MAX = 0.3, 0.95
-_BATCH = 128  # ROIs fitted at once: bounds the Jacobians' memory (2 starts x 128 x p x 13)
+_BATCH = 128  # ROIs fitted at once: bounds the memory of `_natural`'s Jacobians (128 x p x 13)
 
 
 class PairFit(NamedTuple):
@@ -186,7 +191,8 @@ def _levenberg_marquardt(
     max_iter: int, tol: float,
 ) -> tuple[np.ndarray, ...]:  # fmt: skip
     """Maximise the Poisson likelihood over the ``seen`` pixels from ``theta`` (n, 13) for every
-    ROI of ``data`` (n, p); returns (theta, loglik, stopped within tol, iterations)."""
+    ROI of ``data`` (n, p); returns (theta, loglik, stopped within tol, iterations). The NumPy
+    twin of `_fit_starts`, for the tests."""
     grid = tuple(g.ravel().astype(float) for g in np.indices(shape)[::-1])
     lo, hi = _bounds(shape, s2)
     loglik = _loglik(data, _model(theta, grid)[0], s2, seen)
@@ -216,6 +222,25 @@ def _levenberg_marquardt(
         near = small
         converged[act] = near
         done[act] = near | (damping[act] > 1e8)
+    return theta, loglik, converged, iterations
+
+
+def _fit_starts(
+    data: np.ndarray, seen: np.ndarray, theta: np.ndarray, shape: tuple[int, int], s2: float,
+    max_iter: int, tol: float,
+) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """`_levenberg_marquardt` in the numba kernel `latentz.fit._pair_kernels.pair_fits`; fewer
+    than `SMALL_BATCH` rows on one thread."""
+    n = len(theta)
+    lo, hi = _bounds(shape, s2)
+    theta = np.ascontiguousarray(theta, dtype=np.float64)
+    loglik, converged = np.empty(n), np.empty(n, dtype=np.bool_)
+    iterations = np.empty(n, dtype=np.int64)
+    with one_thread_if(n < SMALL_BATCH), numba.parallel_chunksize(1):
+        pair_fits(
+            np.ascontiguousarray(data), np.ascontiguousarray(seen), theta, lo, hi, *shape, s2,
+            max_iter, tol, min(n, 64 * numba.get_num_threads()), loglik, converged, iterations,
+        )  # fmt: skip
     return theta, loglik, converged, iterations
 
 
@@ -318,7 +343,7 @@ def _fit_batch(
     seen = np.isfinite(rois)
     rois = np.where(seen, rois, 0.0)
     data, seen = rois.reshape(n, -1), seen.reshape(n, -1).astype(float)
-    theta, loglik, stopped, iterations = _levenberg_marquardt(
+    theta, loglik, stopped, iterations = _fit_starts(
         np.concatenate([data, data]), np.concatenate([seen, seen]), _starts(rois, one, s2),
         (h, w), s2, max_iter, tol,
     )  # fmt: skip

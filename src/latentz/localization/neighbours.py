@@ -39,26 +39,48 @@ def neighbour_light(
     frames, ``corner`` (n, 2) each ROI's first column and row, ``shape`` the ROIs' (h, w).
     """
     n = len(params)
+    rows, light = _light_into(params, frame, corner, shape)
+    out = np.zeros((n, shape[0] * shape[1]))
+    out[rows] = light
+    return out.reshape(n, *shape)
+
+
+def _light_into(
+    params: np.ndarray, frame: np.ndarray, corner: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ROIs that another fit's light reaches (indices, ascending) and that light (k, h * w,
+    photoelectrons); arguments as `neighbour_light`. Most ROIs of a frame receive none, so
+    only these are made."""
     h, w = shape
-    light = np.zeros((n, h * w))
     usable = np.isfinite(params).all(axis=1)
     centre = corner + [(w - 1) / 2, (h - 1) / 2]
     into, src = box_pairs(centre, frame, params[:, :2], frame, max(h, w) / 2 + REACH_PX)
     near = usable[src] & (into != src)
     into, src = into[near], src[near]
-    if into.size:  # one fit per emitter, none of the ROI's own
-        group = copies(params[:, 0], params[:, 1], frame)
-        keep = (group[src] == src) & (group[src] != group[into])
-        into, src = into[keep], src[keep]
+    if into.size == 0:
+        return into, np.zeros((0, h * w))
+    # one fit per emitter, none of the ROI's own
+    group = copies(params[:, 0], params[:, 1], frame)
+    keep = (group[src] == src) & (group[src] != group[into])
+    into, src = into[keep], src[keep]
     # summed in the order of the neighbours' positions: the same light whatever the rows' order
     order = np.lexsort((params[src, 1], params[src, 0], into))
     into, src = into[order], src[order]
-    if into.size:
-        local = params[src].copy()
-        local[:, :2] -= corner[into]
-        local[:, 3] = 0.0  # the background is the ROI's own
-        np.add.at(light, into, model_and_jacobian(local, (h, w), jacobian=False)[0])
-    return light.reshape(n, h, w)
+    rows, first = np.unique(into, return_index=True)
+    if rows.size == 0:
+        return rows, np.zeros((0, h * w))
+    local = params[src].copy()
+    local[:, :2] -= corner[into]
+    local[:, 3] = 0.0  # the background is the ROI's own
+    model = model_and_jacobian(local, (h, w), jacobian=False)[0]
+    # each ROI's neighbours added one after another, in order (np.add.reduceat sums three or
+    # more in another order: other bits)
+    count = np.diff(first, append=len(into))
+    light = model[first]
+    for k in range(1, count.max()):
+        more = count > k
+        light[more] += model[first[more] + k]
+    return rows, light
 
 
 def _pearson(
@@ -96,18 +118,21 @@ def refit_without_neighbours(
     shape = rois.shape[1:]
     for _ in range(PASSES):
         params = np.where(fit.converged[:, None], fit.params, np.nan)
-        light = neighbour_light(params, frame, corner, shape)
-        crowded = light.reshape(len(light), -1).max(axis=1) > 0
-        if not crowded.any():
+        rows, light = _light_into(params, frame, corner, shape)
+        lit = light.max(axis=1) > 0
+        if not lit.any():
             return fit
+        crowded = np.zeros(len(params), bool)
+        crowded[rows[lit]] = True
+        light = light[lit].reshape(-1, *shape)
         start = fit.params[crowded].copy()
         start[:, :2] -= corner[crowded]
         refit = fit_arrays(
-            rois[crowded] - light[crowded], method=method, readnoise=readnoise, init=start,
+            rois[crowded] - light, method=method, readnoise=readnoise, init=start,
             windows=None if windows is None else windows[crowded], device=device,
             errors="sandwich",
         )  # fmt: skip
-        chi2 = _pearson(refit.params, rois[crowded], light[crowded], readnoise)
+        chi2 = _pearson(refit.params, rois[crowded], light, readnoise)
         refit = refit._replace(chi2=chi2)
         params = refit.params.copy()
         params[:, :2] += corner[crowded]

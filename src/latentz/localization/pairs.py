@@ -43,6 +43,7 @@ from __future__ import annotations
 import warnings
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 import pandas as pd
 from scipy.sparse import coo_matrix
@@ -134,10 +135,12 @@ def box_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every pair (i, j) of points ``a[i]`` and ``b[j]`` ((n, 2) and (m, 2), x and y in px) of
     one frame within ``half`` px of each other in x and in y; points that are not finite have
-    none. Found by sorting ``b`` on (frame, x) and reading, for each point of ``a``, the run of
-    ``b`` in its frame within ``half`` in x: no tree, no Python loop."""
-    a_ok = np.flatnonzero(np.isfinite(a).all(axis=1))
-    b_ok = np.flatnonzero(np.isfinite(b).all(axis=1))
+    none. Found by sorting both on (frame, x) and sweeping ``a``'s keys along ``b``'s: each
+    point of ``a`` reads the run of ``b`` in its frame within ``half`` in x (`_runs`), and keeps
+    those within ``half`` in y too (`_within`). Pairs come in ``a``'s order, each point's in
+    ``b``'s sorted order; no tree."""
+    a_ok = np.flatnonzero(np.isfinite(a[:, 0]) & np.isfinite(a[:, 1]))
+    b_ok = np.flatnonzero(np.isfinite(b[:, 0]) & np.isfinite(b[:, 1]))
     if a_ok.size == 0 or b_ok.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     # one sort key: the frames laid end to end along x, each wider than its points and reach
@@ -149,13 +152,51 @@ def box_pairs(
     key_b, b_sorted = key_b[order], b_ok[order]
     key_a = (a_frame[a_ok] - f0) * width + (a[a_ok, 0] - x0)
     margin = half + 1.0  # more than the key's rounding; the exact test follows
-    lo = np.searchsorted(key_b, key_a - margin, side="left")
-    count = np.searchsorted(key_b, key_a + margin, side="right") - lo
-    i = np.repeat(a_ok, count)
-    run_start = np.repeat(lo - (np.cumsum(count) - count), count)
-    j = b_sorted[run_start + np.arange(count.sum())]
-    keep = (a_frame[i] == b_frame[j]) & np.all(np.abs(a[i] - b[j]) <= half, axis=1)
-    return i[keep], j[keep]
+    lo, hi = _runs(key_a - margin, key_a + margin, np.argsort(key_a), key_b)
+    a, b = np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.float64)
+    return _within(a, np.asarray(a_frame), a_ok, b, np.asarray(b_frame), b_sorted, lo, hi,
+                   float(half))  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _runs(
+    start: np.ndarray, stop: np.ndarray, ascending: np.ndarray, keys: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each k, the run ``lo[k]:hi[k]`` of the sorted ``keys`` from ``start[k]`` to ``stop[k]``
+    (both included), as ``np.searchsorted`` left and right give it; the queries are read in
+    the order ``ascending`` (start and stop both ascending), so the run's ends only move on."""
+    lo = np.empty(len(start), np.int64)
+    hi = np.empty(len(start), np.int64)
+    first = last = 0
+    for k in ascending:
+        while first < len(keys) and keys[first] < start[k]:
+            first += 1
+        while last < len(keys) and keys[last] <= stop[k]:
+            last += 1
+        lo[k] = first
+        hi[k] = last
+    return lo, hi
+
+
+@numba.njit(cache=True)
+def _within(
+    a: np.ndarray, a_frame: np.ndarray, a_ok: np.ndarray, b: np.ndarray, b_frame: np.ndarray,
+    b_sorted: np.ndarray, lo: np.ndarray, hi: np.ndarray, half: float,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The pairs (i, j), ``i = a_ok[k]`` and ``j`` in ``b_sorted[lo[k]:hi[k]]``, of one frame
+    and within ``half`` px in x and in y, in that order."""
+    i = np.empty((hi - lo).sum(), np.int64)
+    j = np.empty_like(i)
+    n = 0
+    for k in range(len(a_ok)):
+        p = a_ok[k]
+        for q in b_sorted[lo[k] : hi[k]]:
+            if (a_frame[p] == b_frame[q] and abs(a[p, 0] - b[q, 0]) <= half
+                    and abs(a[p, 1] - b[q, 1]) <= half):  # fmt: skip
+                i[n] = p
+                j[n] = q
+                n += 1
+    return i[:n], j[:n]
 
 
 def copies(x: np.ndarray, y: np.ndarray, frame: np.ndarray) -> np.ndarray:
