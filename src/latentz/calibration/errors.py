@@ -238,6 +238,8 @@ def spread_through(
     sigma: np.ndarray,
     span: np.ndarray,
     limits: np.ndarray | None = None,
+    *,
+    covering: bool = False,
 ) -> np.ndarray:
     """1σ (the model's units, (n,)) of ``model(a') − model(a)`` for a' normal about each row's
     ``at`` with σ ``sigma`` (the model's argument's units), each a' held within its row's
@@ -246,7 +248,10 @@ def spread_through(
     against the curve's bend; where σ spans the curve (weak astigmatism: σ_z of microns, or
     σ_s across the whole inverse z(s)), the curve's spread over the span, not a slope times a
     σ many times wider, nor the slope of an order-16 polynomial's wiggle (or the zero of its
-    derivative at a turn of one). NaN where σ is."""
+    derivative at a turn of one). The root mean square of the differences, or with
+    ``covering`` the least |difference| that holds :data:`ONE_SIGMA` of the normal's weight
+    (the same |model'(a)|·σ on a straight curve; on a curve that steepens towards the span's
+    ends, not ruled by the few a' there). NaN where σ is."""
     sigma = np.asarray(sigma, dtype=np.float64)
     offsets = sigma[:, None] * _NODES[None]
     offsets[:, _NODES == 0] = 0.0  # the centre, also where σ is infinite
@@ -254,8 +259,25 @@ def spread_through(
     values = model(np.clip(a + offsets, span[:, :1], span[:, 1:]))
     if limits is not None:
         values = np.clip(values, limits[:, :1], limits[:, 1:])
-    spread = values - values[:, _NODES == 0]
-    return np.where(np.isnan(sigma), np.nan, np.sqrt(spread**2 @ _WEIGHTS))
+    spread = np.abs(values - values[:, _NODES == 0])
+    width = _covering_width(spread) if covering else np.sqrt(spread**2 @ _WEIGHTS)
+    return np.where(np.isnan(sigma), np.nan, width)
+
+
+def _covering_width(spread: np.ndarray) -> np.ndarray:
+    """(n,) per row of |differences| (n, nodes) at :data:`_NODES`, the one that holds
+    :data:`ONE_SIGMA` of :data:`_WEIGHTS`: each node's weight spread about its value (the
+    cumulative weight at a value is that of the nodes below it and half its own), linear
+    between the values."""
+    order = np.argsort(spread, axis=1)
+    values = np.take_along_axis(spread, order, axis=1)
+    weights = _WEIGHTS[order]
+    held = np.cumsum(weights, axis=1) - weights / 2
+    above = np.clip(np.argmax(held >= ONE_SIGMA, axis=1), 1, spread.shape[1] - 1)
+    rows = np.arange(len(spread))
+    lo, hi = held[rows, above - 1], held[rows, above]
+    share = np.clip((ONE_SIGMA - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0, 1.0)
+    return values[rows, above - 1] + share * (values[rows, above] - values[rows, above - 1])
 
 
 def combine(*parts: np.ndarray) -> np.ndarray:
