@@ -19,8 +19,9 @@ Three independent parts, added in quadrature:
    particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
    the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
    distance d to the nearest particle, evaluated at the spot's own distance (laterally no nearer
-   than the distances held out, and less the held-out particle's own z noise carried through
-   its Δx'(z), Δy'(z), which part 1 carries for a spot); in z, ``a²`` holds the particles'
+   than the distances held out, less the held-out particle's own z noise carried through
+   its Δx'(z), Δy'(z), which part 1 carries for a spot, and scaled to cover 68 % of the
+   held-out errors, which are heavy-tailed); in z, ``a²`` holds the particles'
    own heights, which a held-out error holds twice and a spot near one particle once
    (:func:`field_sigma`). In z it is no smaller than the same line measured on held-out
    particles seen as emitters of the spot's brightness and localized by their 1st-4th
@@ -58,6 +59,9 @@ __all__ = [
 NOISE_WINDOW = 12
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
+#: Share of a normal error within 1σ: laterally, the field line is scaled so that the held-out
+#: errors are covered as often (:func:`_covering_scale`).
+ONE_SIGMA = 0.6827
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
 #: Equally spaced nodes (in σ) and normal weights for :func:`spread_through`: each node is clipped
@@ -111,6 +115,11 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     ``noise_nm`` (one per row) is any further part of each held-out error that a spot's σ holds
     elsewhere, subtracted once (laterally: the held-out particle's own z noise carried through
     its Δx'(z), Δy'(z), which a spot's own σ_z stands for).
+
+    Laterally the line of each bin is then scaled so that, with those parts, it covers
+    :data:`ONE_SIGMA` of the bin's held-out errors (:func:`_covering_scale`): they are
+    heavy-tailed (a few particles and planes hold most of the mean square), and a normal of
+    their mean square spans most of the others many times over.
     """
     line = field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm, noise_nm=noise_nm)
     return line.sigma(z_nm, distance_px)
@@ -150,30 +159,60 @@ def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 25
     order = np.argsort(rows["z_nm"].to_numpy())
     zz = rows["z_nm"].to_numpy()[order]
     err2 = rows[f"err_{axis}_nm"].to_numpy()[order] ** 2
+    known2 = np.zeros(zz.size)
     if model_nm is not None:
         known = np.asarray(model_nm, dtype=np.float64)[use][order]
-        err2 = err2 - 2 * np.where(np.isfinite(known), known, 0.0) ** 2
+        known2 += 2 * np.where(np.isfinite(known), known, 0.0) ** 2
     if noise_nm is not None:
         noise = np.asarray(noise_nm, dtype=np.float64)[use][order]
-        err2 = err2 - np.where(np.isfinite(noise), noise, 0.0) ** 2
+        known2 += np.where(np.isfinite(noise), noise, 0.0) ** 2
     dist2 = rows["distance_px"].to_numpy()[order] ** 2
     edges = np.arange(zz[0], zz[-1] + bin_nm, bin_nm)
     ends = np.cumsum(np.bincount(np.searchsorted(edges, zz, side="right") - 1))
-    centres, values, first = [], [], 0
+    centres, bins, first = [], [], 0
     for end in ends:  # merge consecutive bins until each holds enough planes
-        if end - first >= MIN_PER_BIN or (end == zz.size and not values):
+        if end - first >= MIN_PER_BIN or (end == zz.size and not bins):
             centres.append(np.mean(zz[first:end]))
-            values.append(_floor_and_slope(err2[first:end], dist2[first:end]))
+            bins.append(np.arange(first, end))
             first = end
     if first < zz.size:  # a short last run joins the last bin
-        last = zz >= centres[-1]
-        values[-1] = _floor_and_slope(err2[last], dist2[last])
+        bins[-1] = np.flatnonzero(zz >= centres[-1])
+    lateral = axis != "z"
+    values = [_bin_line(err2[b], known2[b], dist2[b], covering=lateral) for b in bins]
     floor2, slope2 = np.asarray(values).T
     # in z, the spot's neighbours' heights, not the held-out particle's too (see field_sigma)
     share = 0.5 if model not in SMOOTHING and axis == "z" else 1.0
     # laterally no extrapolation below the distances held out (see field_sigma)
     least_d2 = float(np.quantile(dist2, 0.1)) if axis != "z" else 0.0
     return FieldLine(np.asarray(centres), floor2, slope2, share, least_d2)
+
+
+def _bin_line(err2: np.ndarray, known2: np.ndarray, dist2: np.ndarray, *,
+              covering: bool) -> tuple[float, float]:  # fmt: skip
+    """``(a², b²)`` of one z bin's held-out squared errors ``err2`` less the parts ``known2``
+    that a spot's σ holds elsewhere, against the squared distances ``dist2``
+    (:func:`_floor_and_slope`). With ``covering``, scaled by the k² at which
+    ``k²(a² + b²d²) + known2`` covers :data:`ONE_SIGMA` of the squared errors, as a spot's σ
+    should (:func:`_covering_scale`)."""
+    floor2, slope2 = _floor_and_slope(err2 - known2, dist2)
+    if not covering:
+        return floor2, slope2
+    k2 = _covering_scale(err2, known2, floor2 + slope2 * dist2)
+    return k2 * floor2, k2 * slope2
+
+
+def _covering_scale(err2: np.ndarray, known2: np.ndarray, line2: np.ndarray) -> float:
+    """The least k² ≥ 0 with ``err2 ≤ k² line2 + known2`` on :data:`ONE_SIGMA` of the rows.
+
+    The line is a mean square: where a few held-out errors are far larger than the rest (a
+    particle at a defect, the planes where a curve flattens), a normal of that variance spans
+    most of the others many times over, and where the errors are nearer alike than a normal's,
+    too few. Rows where the line is zero (at a particle, without a floor) do not count."""
+    reach = line2 > 0
+    if not reach.any():
+        return 1.0
+    needed = np.maximum(err2[reach] - known2[reach], 0.0) / line2[reach]
+    return float(np.quantile(needed, ONE_SIGMA))
 
 
 def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
@@ -199,6 +238,8 @@ def spread_through(
     sigma: np.ndarray,
     span: np.ndarray,
     limits: np.ndarray | None = None,
+    *,
+    covering: bool = False,
 ) -> np.ndarray:
     """1σ (the model's units, (n,)) of ``model(a') − model(a)`` for a' normal about each row's
     ``at`` with σ ``sigma`` (the model's argument's units), each a' held within its row's
@@ -207,7 +248,10 @@ def spread_through(
     against the curve's bend; where σ spans the curve (weak astigmatism: σ_z of microns, or
     σ_s across the whole inverse z(s)), the curve's spread over the span, not a slope times a
     σ many times wider, nor the slope of an order-16 polynomial's wiggle (or the zero of its
-    derivative at a turn of one). NaN where σ is."""
+    derivative at a turn of one). The root mean square of the differences, or with
+    ``covering`` the least |difference| that holds :data:`ONE_SIGMA` of the normal's weight
+    (the same |model'(a)|·σ on a straight curve; on a curve that steepens towards the span's
+    ends, not ruled by the few a' there). NaN where σ is."""
     sigma = np.asarray(sigma, dtype=np.float64)
     offsets = sigma[:, None] * _NODES[None]
     offsets[:, _NODES == 0] = 0.0  # the centre, also where σ is infinite
@@ -215,8 +259,25 @@ def spread_through(
     values = model(np.clip(a + offsets, span[:, :1], span[:, 1:]))
     if limits is not None:
         values = np.clip(values, limits[:, :1], limits[:, 1:])
-    spread = values - values[:, _NODES == 0]
-    return np.where(np.isnan(sigma), np.nan, np.sqrt(spread**2 @ _WEIGHTS))
+    spread = np.abs(values - values[:, _NODES == 0])
+    width = _covering_width(spread) if covering else np.sqrt(spread**2 @ _WEIGHTS)
+    return np.where(np.isnan(sigma), np.nan, width)
+
+
+def _covering_width(spread: np.ndarray) -> np.ndarray:
+    """(n,) per row of |differences| (n, nodes) at :data:`_NODES`, the one that holds
+    :data:`ONE_SIGMA` of :data:`_WEIGHTS`: each node's weight spread about its value (the
+    cumulative weight at a value is that of the nodes below it and half its own), linear
+    between the values."""
+    order = np.argsort(spread, axis=1)
+    values = np.take_along_axis(spread, order, axis=1)
+    weights = _WEIGHTS[order]
+    held = np.cumsum(weights, axis=1) - weights / 2
+    above = np.clip(np.argmax(held >= ONE_SIGMA, axis=1), 1, spread.shape[1] - 1)
+    rows = np.arange(len(spread))
+    lo, hi = held[rows, above - 1], held[rows, above]
+    share = np.clip((ONE_SIGMA - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0, 1.0)
+    return values[rows, above - 1] + share * (values[rows, above] - values[rows, above - 1])
 
 
 def combine(*parts: np.ndarray) -> np.ndarray:

@@ -591,7 +591,8 @@ class Calibration:
         predicted z): the fit's part of σ_z of each held-out image (as :meth:`apply` gives a
         spot, less the smoothing crossval applies to its shape values) and its local model's
         σ (the neighbours' inverse, alike), through the particle's Δx'(z) or Δy'(z)
-        (:func:`~latentz.calibration.errors.spread_through`). A spot's own σ_z stands for it
+        (:func:`~latentz.calibration.errors.spread_through`, the width that covers 68 %, as
+        for a spot). A spot's own σ_z stands for it
         (:meth:`_lateral_error`); the field's z error is not in it (a particle's height moves
         its z read and its Δ alike, and the read z's Δ holds both)."""
         from latentz.calibration.crossval import smoothed_noise
@@ -608,7 +609,8 @@ class Calibration:
         noise_z = np.hypot(fit, np.nan_to_num(self._model_sigma("z", p, z)))
         model = (self.local.dx if axis == "x" else self.local.dy)[p]
         window = self.in_range_window(p, z)
-        return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window)
+        return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window,
+                                                          covering=True)  # fmt: skip
 
     def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
                        key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
@@ -1136,13 +1138,14 @@ class Calibration:
         spot's own, the particle's model error and lack of fit, its σ_z before the field's part
         (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
         particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
-        where a spot in range lies, :meth:`in_range_window`), and the field model's
+        where a spot in range lies, :meth:`in_range_window`: the width that holds 68 % of the
+        normal's weight, not the RMS, which the curve's steep ends rule), and the field model's
         (:meth:`_field_sigma`)."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
         from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0),
-                                self.in_range_window(p, z_in))  # fmt: skip
+                                self.in_range_window(p, z_in), covering=True)  # fmt: skip
         model_d = self._model_sigma(axis, p, z, at)
         if f"{axis}_err" in cols:
             own = cols[f"{axis}_err"]
