@@ -15,8 +15,9 @@ from its own traces), the nearest *other* kept particle's refits at the same z c
 plane's (tilt-corrected) z: field, dimming transfer and the particles' own heights together;
 the fit's precision is not in it (the refits are of the bright image).
 
-Localized instead by its second, third and fourth nearest other particles (:data:`PAIR_RANKS`),
-the same held-out particle is an emitter farther from the particle whose model it is given:
+Localized by each of its first to fourth nearest other particles (:data:`PAIR_RANKS`), the
+same held-out particle is an emitter at a growing distance from the particle whose model it is
+given:
 :func:`pair_table` holds these errors with the distances, the z error of a dim emitter as it
 grows with the distance to the particle that localizes it, measured at the user's own
 particles (:meth:`~latentz.calibration.Calibration.apply` reads it with

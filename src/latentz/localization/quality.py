@@ -1,7 +1,9 @@
 """One quality verdict per spot: the ``good`` column and the flags that explain it.
 
-Nothing else decides quality; `localize` calls :func:`assess` and `track`/the report read
-``good``. A spot is good when it
+`localize` calls :func:`assess`, and `track`/the report read ``good``; the only other
+verdict is :func:`latentz.localization.mismatch.check_calibration_fits`, which marks every spot
+``inconsistent`` (not good) when the table as a whole contradicts the calibration. A spot is
+good when it
 
 - ``converged`` (the fit's own flag);
 - is not a ``duplicate``: detections whose fits converge within :data:`DUPLICATE_PX` of each
