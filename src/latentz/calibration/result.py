@@ -63,8 +63,8 @@ _READ_COLUMNS = (*_PARAMS, *_ERROR_COLUMNS, *CORRELATION_COLUMNS, "x_err", "y_er
 #: range while the widths keep growing. The quality verdict's χ² (10 % curve scatter, limit
 #: 200) calls such a spot inconsistent too, so single molecules lose nothing more to it.
 BEYOND_WIDTH = 2.0
-#: Spots whose brightness shift is read at every plane at once (:meth:`_shift_by_plane`): the
-#: refits read take about 47 values per spot and plane, 19 MB for 200 planes.
+#: Spots searched at once against every plane at their own brightness (:meth:`_past_turn`):
+#: the refits read take about 47 values per spot and plane, 19 MB for 200 planes.
 _PLANE_CHUNK = 256
 
 
@@ -875,33 +875,30 @@ class Calibration:
         narrower than the bright particle's fit at the same plane."""
         out = np.zeros(z.size, dtype=bool)
         found = np.flatnonzero(np.isfinite(z))
-        if found.size == 0:
-            return out
-        p = p[found]
-        cols = {name: values[found] for name, values in cols.items()}
-        joint = self.joint_readout(cols, p, self._shift_by_plane(cols, p), z_only=True)
-        lo, hi = self.local.shapes[self.shape].z_range[p].T
-        with np.errstate(invalid="ignore"):
-            out[found] = (joint.z_nm < lo) | (joint.z_nm > hi)
+        z_range = self.local.shapes[self.shape].z_range
+        for start in range(0, found.size, _PLANE_CHUNK):
+            rows = found[start : start + _PLANE_CHUNK]
+            part = {name: values[rows] for name, values in cols.items()}
+            shift = self._shift_by_plane(part, p[rows])
+            joint = self.joint_readout(part, p[rows], shift, z_only=True)
+            lo, hi = z_range[p[rows]].T
+            with np.errstate(invalid="ignore"):
+                out[rows] = (joint.z_nm < lo) | (joint.z_nm > hi)
         return out
 
     def _shift_by_plane(self, cols: dict, p: np.ndarray) -> np.ndarray | None:
         """(n, planes, 3) brightness shift of the fitted wx, wy, ρ of the spots of columns
         ``cols`` on particles ``p`` at each of the particle's planes
         (:meth:`_shape_params_shift` there), or None where the calibration has no dimmed refits
-        or the spots no background. Read in chunks of :data:`_PLANE_CHUNK` spots."""
+        or the spots no background."""
         if "background" not in cols or "dim0_wx" not in self.traces.data:
             return None
-        n_z = self.local.z_nm.shape[1]
-        out = np.empty((p.size, n_z, 3))
-        for start in range(0, p.size, _PLANE_CHUNK):
-            part = slice(start, start + _PLANE_CHUNK)
-            rows = {name: np.repeat(cols[name][part], n_z) for name in ("amplitude", "background")}
-            planes = self.local.z_nm[p[part]]
-            index = np.tile(np.arange(n_z), planes.shape[0])
-            shift = self._shape_params_shift(rows, np.repeat(p[part], n_z), planes.ravel(), index)
-            out[part] = shift.reshape(planes.shape[0], n_z, 3)
-        return out
+        planes = self.local.z_nm[p]
+        n, n_z = planes.shape
+        rows = {name: np.repeat(cols[name], n_z) for name in ("amplitude", "background")}
+        index = np.tile(np.arange(n_z), n)
+        shift = self._shape_params_shift(rows, np.repeat(p, n_z), planes.ravel(), index)
+        return shift.reshape(n, n_z, 3)
 
     def z_beyond_range(self, spots: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
         """Where one emitter beyond the calibrated range would be: for spots (a fit table: x, y,
