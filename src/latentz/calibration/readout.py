@@ -102,7 +102,8 @@ def joint_z(
     *,
     z_only: bool = False,
 ) -> JointZ:
-    """The joint readout (module notes) of spots with fitted (wx, wy, ρ) ``fitted`` (n, 3) and
+    """The joint readout (module notes) of spots with fitted (wx, wy, ρ) ``fitted`` (n, 3; or
+    (n, planes, 3): the values to compare with each plane of the particle's curves) and
     their covariance ``cov`` (n, 3, 3) on particles ``p`` (n,): ``curves_at(particle, z)`` gives
     the particles' curves (:meth:`~latentz.calibration.result.Calibration.curves_at`),
     ``z_grid`` (particles, planes) their planes (nm) and ``scatter`` (particles, 3) the RMS
@@ -144,14 +145,15 @@ def _search(curves_at, z_grid, p, fitted, cov, z_only: bool = False) -> tuple[np
     with ``z_only``, z alone (σ and spread NaN)."""
     grid = z_grid[p]
     weight = _weights(cov)
-    r = fitted[:, None, :] - _curves(curves_at, p[:, None], grid)
+    by_plane = fitted if fitted.ndim == 3 else fitted[:, None, :]
+    r = by_plane - _curves(curves_at, p[:, None], grid)
     d2 = np.einsum("mki,mij,mkj->mk", r, weight, r)
     d2 = np.where(np.isfinite(d2), d2, np.inf)
     rows = np.arange(len(p))
     k = np.argmin(d2, axis=1)
     z = _parabola_vertex(grid, d2, k)
     # d² at z itself: at the best plane, up to half a step off z, it also counts that step
-    r = fitted - _curves(curves_at, p, z)
+    r = by_plane[rows, k if fitted.ndim == 3 else 0] - _curves(curves_at, p, z)
     best = np.fmin(np.einsum("mi,mij,mj->m", r, weight, r), d2[rows, k])
     found = np.isfinite(best)
     if z_only:
