@@ -37,6 +37,7 @@ ends within 0.01 bounds of the optimum (all within 0.035 on the benchmark's ROIs
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -449,38 +450,44 @@ def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, gra
     return obj_ref, obj_new
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _cholesky(a, lower):
-    """Cholesky factor of the symmetric matrix ``a`` into ``lower``; False if not positive."""
-    n = _NP
-    for i in range(n):
-        for j in range(i + 1):
-            s = a[i, j]
-            for k in range(j):
-                s -= lower[i, k] * lower[j, k]
-            if i == j:
-                if not s > 0.0:
-                    return False
-                lower[i, i] = math.sqrt(s)
-            else:
-                lower[i, j] = s / lower[j, j]
-    return True
+def cholesky_solver(n: int) -> tuple[Any, Any]:
+    """``cholesky(a, lower)``, the Cholesky factor of the symmetric ``n`` x ``n`` matrix ``a``
+    (its lower triangle is read) into ``lower``, False if not positive definite, and
+    ``solve(lower, b, out)``, the solution of ``L L^T out = b`` from that factor; compiled with
+    ``n`` a constant, as the fixed-size loops of the hot path were."""
+
+    @numba.njit(cache=True, fastmath=_FASTMATH)
+    def cholesky(a, lower):
+        for i in range(n):
+            for j in range(i + 1):
+                s = a[i, j]
+                for k in range(j):
+                    s -= lower[i, k] * lower[j, k]
+                if i == j:
+                    if not s > 0.0:
+                        return False
+                    lower[i, i] = math.sqrt(s)
+                else:
+                    lower[i, j] = s / lower[j, j]
+        return True
+
+    @numba.njit(cache=True, fastmath=_FASTMATH)
+    def solve(lower, b, out):
+        for i in range(n):
+            s = b[i]
+            for k in range(i):
+                s -= lower[i, k] * out[k]
+            out[i] = s / lower[i, i]
+        for i in range(n - 1, -1, -1):
+            s = out[i]
+            for k in range(i + 1, n):
+                s -= lower[k, i] * out[k]
+            out[i] = s / lower[i, i]
+
+    return cholesky, solve
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _solve(lower, b, out):
-    """Solve ``L L^T out = b`` given the Cholesky factor ``lower``."""
-    n = _NP
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= lower[i, k] * out[k]
-        out[i] = s / lower[i, i]
-    for i in range(n - 1, -1, -1):
-        s = out[i]
-        for k in range(i + 1, n):
-            s -= lower[k, i] * out[k]
-        out[i] = s / lower[i, i]
+_cholesky, _solve = cholesky_solver(_NP)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)

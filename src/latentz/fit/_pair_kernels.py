@@ -19,13 +19,14 @@ import math
 import numba
 import numpy as np
 
-from latentz.fit._kernels import _FASTMATH
+from latentz.fit._kernels import _FASTMATH, cholesky_solver
 
 #: Internal parameters of a pair: per emitter x, y, A, log wx, log wy, atanh rho; the background.
 N_PAIR = 13
 _LAM0 = 1e-3
 _LAM_STOP = 1e8
 _LOG_FLOOR = 1e-12
+_cholesky, _solve = cholesky_solver(N_PAIR)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
@@ -100,33 +101,17 @@ def _scoring(data, seen, mu, jac, s2, residual, weighted, grad, info):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _damped_step(info, grad, damping, system, step):
+def _damped_step(info, grad, damping, damped, factor, step):
     """Solve ``(I + diag(damping I_kk + 1e-9 (I_kk + 1))) step = grad`` by Cholesky into
-    ``step``; False where the matrix is not positive definite (``system`` holds the factor)."""
-    n = N_PAIR
-    for i in range(n):
-        for j in range(i + 1):
-            s = info[i, j]
-            if i == j:
-                s += damping * info[i, i] + 1e-9 * (info[i, i] + 1.0)
-            for k in range(j):
-                s -= system[i, k] * system[j, k]
-            if i == j:
-                if not s > 0.0:
-                    return False
-                system[i, i] = math.sqrt(s)
-            else:
-                system[i, j] = s / system[j, j]
-    for i in range(n):
-        s = grad[i]
-        for k in range(i):
-            s -= system[i, k] * step[k]
-        step[i] = s / system[i, i]
-    for i in range(n - 1, -1, -1):
-        s = step[i]
-        for k in range(i + 1, n):
-            s -= system[k, i] * step[k]
-        step[i] = s / system[i, i]
+    ``step``; False where the matrix is not positive definite. ``damped`` receives the matrix's
+    lower triangle, ``factor`` its Cholesky factor."""
+    for i in range(N_PAIR):
+        for j in range(i):
+            damped[i, j] = info[i, j]
+        damped[i, i] = info[i, i] + (damping * info[i, i] + 1e-9 * (info[i, i] + 1.0))
+    if not _cholesky(damped, factor):
+        return False
+    _solve(factor, grad, step)
     return True
 
 
@@ -135,10 +120,10 @@ def _fit_row(data, seen, theta, lo, hi, h, w, s2, max_iter, tol, pixels, work, m
     """Fit one row from ``theta`` (13, internal; updated in place); returns (loglik, converged,
     iterations). Work space: ``pixels`` (3, p) the model at ``theta``, at the trial and the
     residuals; ``work`` (3, 13, p) their derivatives and the weighted derivatives; ``mats``
-    (2, 13, 13) the Fisher matrix and the damped system's factor; ``vecs`` (3, 13)."""
+    (3, 13, 13) the Fisher matrix, the damped system and its factor; ``vecs`` (3, 13)."""
     jac, jac_try, weighted = work[0], work[1], work[2]
     mu, mu_try, residual = pixels[0], pixels[1], pixels[2]
-    info, system = mats[0], mats[1]
+    info, damped, factor = mats[0], mats[1], mats[2]
     grad, step, trial = vecs[0], vecs[1], vecs[2]
     _model(theta, h, w, mu, jac)
     loglik = _loglik(data, seen, mu, s2)
@@ -151,7 +136,7 @@ def _fit_row(data, seen, theta, lo, hi, h, w, s2, max_iter, tol, pixels, work, m
         if fresh:
             _scoring(data, seen, mu, jac, s2, residual, weighted, grad, info)
             fresh = False
-        solved = _damped_step(info, grad, damping, system, step)
+        solved = _damped_step(info, grad, damping, damped, factor, step)
         better = False
         small = solved
         if solved:
@@ -189,7 +174,7 @@ def pair_fits(data, seen, theta, lo, hi, h, w, s2, max_iter, tol, n_chunks, logl
     for c in numba.prange(n_chunks):
         pixels = np.empty((3, p))
         work = np.empty((3, N_PAIR, p))
-        mats = np.empty((2, N_PAIR, N_PAIR))
+        mats = np.empty((3, N_PAIR, N_PAIR))
         vecs = np.empty((3, N_PAIR))
         for r in range(c * n // n_chunks, (c + 1) * n // n_chunks):
             loglik[r], converged[r], iterations[r] = _fit_row(
