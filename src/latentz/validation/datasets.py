@@ -27,7 +27,8 @@ from latentz.validation.microscope import Microscope, bead_slices
 __all__ = ["SIZES", "ValidationData", "emitter_images", "make_data", "render_patches",
            "simulate_study"]  # fmt: skip
 
-#: The study sizes: "full" is issue 12's microscope, "small" runs in seconds for the tests.
+#: The study sizes: "full" is the independent validation microscope of docs/validation.md
+#: (256 x 256 px, 128 beads), "small" runs in seconds for the tests.
 SIZES = {
     "full": {
         "field_px": 256,
