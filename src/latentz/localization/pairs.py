@@ -135,9 +135,9 @@ def box_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every pair (i, j) of points ``a[i]`` and ``b[j]`` ((n, 2) and (m, 2), x and y in px) of
     one frame within ``half`` px of each other in x and in y; points that are not finite have
-    none. Found by sorting both on (frame, x) and sweeping ``a``'s keys along ``b``'s: each
-    point of ``a`` reads the run of ``b`` in its frame within ``half`` in x (`_runs`), and keeps
-    those within ``half`` in y too (`_within`). Pairs come in ``a``'s order, each point's in
+    none. Found by sorting ``b`` on (frame, x): each point of ``a`` reads the run of ``b`` in
+    its frame within ``half`` in x (``a``'s keys searched in ascending order), and keeps those
+    within ``half`` in y too (`_within`). Pairs come in ``a``'s order, each point's in
     ``b``'s sorted order; no tree."""
     a_ok = np.flatnonzero(np.isfinite(a[:, 0]) & np.isfinite(a[:, 1]))
     b_ok = np.flatnonzero(np.isfinite(b[:, 0]) & np.isfinite(b[:, 1]))
@@ -152,30 +152,14 @@ def box_pairs(
     key_b, b_sorted = key_b[order], b_ok[order]
     key_a = (a_frame[a_ok] - f0) * width + (a[a_ok, 0] - x0)
     margin = half + 1.0  # more than the key's rounding; the exact test follows
-    lo, hi = _runs(key_a - margin, key_a + margin, np.argsort(key_a), key_b)
+    # each point's run of b within reach in x, searched with the queries in ascending order
+    ascending = np.argsort(key_a)
+    lo, hi = np.empty((2, key_a.size), np.int64)
+    lo[ascending] = np.searchsorted(key_b, key_a[ascending] - margin, side="left")
+    hi[ascending] = np.searchsorted(key_b, key_a[ascending] + margin, side="right")
     a, b = np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.float64)
     return _within(a, np.asarray(a_frame), a_ok, b, np.asarray(b_frame), b_sorted, lo, hi,
                    float(half))  # fmt: skip
-
-
-@numba.njit(cache=True)
-def _runs(
-    start: np.ndarray, stop: np.ndarray, ascending: np.ndarray, keys: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """For each k, the run ``lo[k]:hi[k]`` of the sorted ``keys`` from ``start[k]`` to ``stop[k]``
-    (both included), as ``np.searchsorted`` left and right give it; the queries are read in
-    the order ``ascending`` (start and stop both ascending), so the run's ends only move on."""
-    lo = np.empty(len(start), np.int64)
-    hi = np.empty(len(start), np.int64)
-    first = last = 0
-    for k in ascending:
-        while first < len(keys) and keys[first] < start[k]:
-            first += 1
-        while last < len(keys) and keys[last] <= stop[k]:
-            last += 1
-        lo[k] = first
-        hi[k] = last
-    return lo, hi
 
 
 @numba.njit(cache=True)
