@@ -885,8 +885,10 @@ class Calibration:
             rows = found[start : start + _PLANE_CHUNK]
             part = {name: values[rows] for name, values in cols.items()}
             lo, hi = z_range[p[rows]].T
-            for shift in (self._shift_by_plane(part, p[rows]),
-                          self._shape_params_shift(part, p[rows], z[rows])):  # fmt: skip
+            shifts = [self._shift_by_plane(part, p[rows])]
+            if shifts[0] is not None:  # without dimmed refits or background both are None
+                shifts.append(self._shape_params_shift(part, p[rows], z[rows]))
+            for shift in shifts:
                 joint = self.joint_readout(part, p[rows], shift, z_only=True)
                 with np.errstate(invalid="ignore"):
                     out[rows] |= (joint.z_nm < lo) | (joint.z_nm > hi)
