@@ -333,9 +333,9 @@ def _cause(mismatch: Mismatch) -> str:
     causes = []
     if mismatch.axis_off:
         causes.append(
-            f"their astigmatism lies along other axes than the calibration's "
-            f"({mismatch.axis_deg:+.0f}° ± {mismatch.axis_se_deg:.0f}°): another microscope, "
-            "or a rotated camera"
+            f"their astigmatism lies along other axes than the calibration's (its curves fit "
+            f"them best turned by {mismatch.axis_deg:+.0f}° ± {mismatch.axis_se_deg:.0f}°): "
+            "another microscope, or a rotated camera"
         )
     if mismatch.widths_off and mismatch.blur_nm > BLUR_LIMIT_NM:
         causes.append(
