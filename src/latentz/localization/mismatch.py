@@ -37,9 +37,10 @@ place only as well as neighbouring particles agree (:func:`_calibration_se`).
 The calibration is blamed when the axis lies more than :data:`AXIS_LIMIT_DEG` off with a
 significant gain, the log width ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond
 :data:`BLUR_LIMIT_NM`, by more than :data:`SIGNIFICANCE` standard errors. A
-calibration whose astigmatism lies 90° off is not seen: it reads every z mirrored (z → −z), and
-the shapes fit as well as the right calibration's; only the PSF's asymmetry about focus tells
-them apart.
+calibration whose astigmatism lies 90° off is not seen: it reads every z about mirrored
+(z → −z), and the shapes fit as well as the right calibration's. The PSF's asymmetry about
+focus does not tell them apart either: each of the two fits the spots better as it is than
+turned by 90° (docs/single-molecules.md).
 Limits and measurements: ``benchmarks/bench_wrong_calibration.py``.
 """
 
