@@ -13,7 +13,7 @@ z readout cannot absorb are measured over the table's converged, unique, located
   the curves as they are. Both have standard errors from resampling the spots. Reading each
   spot at its own best z for every turn matters: a calibration turned by 45° reads z where its
   shapes come nearest the spot's, near focus where its ellipticity is small and of either sign,
-  and the spots' ellipticity against the calibration's at that z turns by only 1–30°. Blamed
+  and the spots' ellipticity against the calibration's at that z turns by only up to 33°. Blamed
   beyond :data:`AXIS_LIMIT_DEG` with a gain beyond :data:`AXIS_GAIN_SIGNIFICANCE` standard
   errors: on very weak astigmatism, where a turn barely changes the curves, a right
   calibration's best turn lies up to 28° off by chance, but gains little;
@@ -61,15 +61,16 @@ if TYPE_CHECKING:
 __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 
 #: Turn (degrees) of the calibration's curves, fitting the spots best, beyond which the
-#: calibration is blamed. Right calibrations turn by 0° (± 0–1.4°) on microscopes of 20–90 nm
-#: RMS astigmatism and by up to 28° (± 2–12°) by chance on those of 3–8 nm, where a turn barely
-#: changes the curves; one whose astigmatism lies 45° off turns by 30–45° (± 0.7–3.6°) on all
-#: of them (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
+#: calibration is blamed. Right calibrations turn by at most 2.5° (± 0–1.4°) on microscopes of
+#: 20–90 nm RMS astigmatism and by up to 27.5° (± 2–12.5°) by chance on those of 3–8 nm, where a
+#: turn barely changes the curves; one whose astigmatism lies 45° off turns by 30–45° (± 0–3.6°)
+#: on all of them (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
 #: Standard errors by which the χ² that turn gains must exceed zero to blame the calibration.
 #: Right calibrations gain at most 2.5 standard errors (on 3–8 nm RMS astigmatism; 0–1.4 on
-#: stronger), tables of 20–80 of their spots at most 2.3; a calibration turned by 45° gains
-#: 4–15 on microscopes of 3–8 nm and 10–22 on 20–30 nm (the same sources).
+#: stronger), tables of 20–80 of their spots none beyond; a calibration turned by 45° gains
+#: 4.0–10 on microscopes of 3–8 nm (3.98 on one of 14: missed), 10–22 on 20–30 nm and 16–34 on
+#: 50–90 nm (the same sources).
 AXIS_GAIN_SIGNIFICANCE = 4.0
 #: Turns (rad) of the calibration's curves tried: every 2.5° over 180°.
 TURNS = np.radians(np.arange(-90.0, 90.0, 2.5))
