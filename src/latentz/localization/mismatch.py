@@ -68,9 +68,9 @@ __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 AXIS_LIMIT_DEG = 10.0
 #: Standard errors by which the χ² that turn gains must exceed zero to blame the calibration.
 #: Right calibrations gain at most 2.5 standard errors (on 3–8 nm RMS astigmatism; 0–1.4 on
-#: stronger), tables of 20–80 of their spots none beyond; a calibration turned by 45° gains
-#: 4.0–10 on microscopes of 3–8 nm (3.98 on one of 14: missed), 10–22 on 20–30 nm and 16–34 on
-#: 50–90 nm (the same sources).
+#: stronger), and none of 6,300 tables of 20–80 of their spots is blamed; a calibration turned
+#: by 45° gains 4.0–10 on microscopes of 3–8 nm (3.98 on one of 14: missed), 10–22 on 20–30 nm
+#: and 16–34 on 50–90 nm (the same sources).
 AXIS_GAIN_SIGNIFICANCE = 4.0
 #: Turns (rad) of the calibration's curves tried: every 2.5° over 180°.
 TURNS = np.radians(np.arange(-90.0, 90.0, 2.5))
