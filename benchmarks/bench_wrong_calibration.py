@@ -7,19 +7,23 @@ photons within ±400 nm at 0.5 per µm² are localized with calibrations made, w
 simulated 100 nm beads (:func:`latentz.validation.molecules.bead_calibration`) of: the same
 microscope (right), and microscopes that differ in one thing: the astigmatism's axis turned by
 90° or 45°, the pixel size 1.25x, the wavelength 1.2x. ``--right`` more microscopes of each
-kind get their right calibration (false alarms), one whose axis lies 45° off and one at 1.2x
-the wavelength. For each: the median ``consistency_chi2`` of the converged, unique spots, the
-measurements of :func:`latentz.localization.mismatch.calibration_mismatch` (axis in degrees,
-log width ratio and blur in nm, each ± its standard error), whether
+kind (seeds from ``--start``) get their right calibration (false alarms), one whose axis lies
+90° and one 45° off and one at 1.2x the wavelength. For each: the median ``consistency_chi2``
+of the converged, unique spots, the measurements of
+:func:`latentz.localization.mismatch.calibration_mismatch` (axis in degrees, the χ² that turn
+gains, log width ratio and blur in nm, each ± its standard error), whether
 :func:`latentz.localization.mismatch.check_calibration_fits` warns, the share of the correct,
-in-range localizations that are good, and the z RMSE of the converged, unique, in-range spots
-against the truth (each paired with the nearest molecule within 250 nm laterally at any depth,
-one z offset removed: :func:`latentz.validation.challenge.offset_pairs`), which says whether
-a wrong calibration that is not caught costs z. For right calibrations, how often small tables
-blame the axis: the share of :data:`SUBSETS` random draws of 20, 40 and 80 of the checked spots
-whose axis is off. Writes ``results/bench_wrong_calibration.md``.
+in-range localizations that are good, and the harm: the z RMSE (± its standard error) and
+lateral RMSE of the converged, unique, in-range spots against the truth (each paired with the
+nearest molecule within 250 nm laterally at any depth, one z offset removed:
+:func:`latentz.validation.challenge.offset_pairs`), and the z RMSE over the right
+calibration's on the same frames, which says whether a wrong calibration that is not caught
+costs z. For right calibrations, how often small tables blame the axis: the share of
+:data:`SUBSETS` random draws of 20, 40 and 80 of the checked spots whose axis is off. Writes
+``results/bench_wrong_calibration.md`` (``_start<n>`` before ``.md`` from another ``--start``).
 
-Run: ``python benchmarks/bench_wrong_calibration.py [--right 3] [--kinds strong weak "very weak"]``.
+Run: ``python benchmarks/bench_wrong_calibration.py [--right 3] [--start 1]
+[--kinds strong weak "very weak"]``.
 """
 
 from __future__ import annotations
@@ -52,13 +56,13 @@ SUBSETS = 100
 SMALL_TABLES = (20, 40, 80)
 
 #: The calibrations that the ``--right`` microscopes get.
-EXTRA = ("right", "axis 45° off", "wavelength 1.2x")
+EXTRA = ("right", "axis 90° off", "axis 45° off", "wavelength 1.2x")
 
 
 def scores(kind: str, seed: int, astigmatism: tuple[float, float], only_right: bool) -> list:
     rng = np.random.default_rng(seed)
     microscope = random_microscope(rng, astigmatism_nm=astigmatism)
-    out = []
+    out, right = [], {}
     for name, source in wrong_microscopes(microscope).items():
         if only_right and name not in EXTRA:
             continue
@@ -75,26 +79,34 @@ def scores(kind: str, seed: int, astigmatism: tuple[float, float], only_right: b
             mismatch.check_calibration_fits(locs, cal)
         found = mismatch.calibration_mismatch(locs, cal)
         located = (locs["correct"] & locs["in_range"]).to_numpy(bool)
+        z_rmse, z_se, lateral = _rmse(locs[checked & locs["in_range"].to_numpy(bool)], truth)
+        right = right or {"z": z_rmse, "lateral": lateral}
         out.append({
             "astigmatism": kind, "seed": seed, "calibration": name,
             "median chi2": float(np.median(locs["consistency_chi2"][checked])),
             "axis °": f"{found.axis_deg:+.1f} ± {found.axis_se_deg:.1f}",
+            "axis χ² gain": f"{found.axis_gain:.1f} ± {found.axis_gain_se:.1f}",
             "log width ratio": f"{found.log_width:+.3f} ± {found.log_width_se:.3f}",
             "blur nm": f"{found.blur_nm:+.0f} ± {_blur_se_nm(found):.0f}",
             "warns": "yes" if caught else "no",
             "good of correct in range": float(locs["good"].to_numpy(bool)[located].mean()),
-            "z RMSE nm": _z_rmse(locs[checked & locs["in_range"].to_numpy(bool)], truth),
+            "z RMSE nm": f"{z_rmse:.0f} ± {z_se:.0f}",
+            "z RMSE / right's": z_rmse / right["z"],
+            "lateral RMSE nm (right's)": f"{lateral:.1f} ({right['lateral']:.1f})",
             "axis off, 20/40/80 spots %": _small_tables(locs[checked], cal, seed)
             if name == "right" else "",
         })  # fmt: skip
     return out
 
 
-def _z_rmse(spots: pd.DataFrame, truth: pd.DataFrame) -> float:
+def _rmse(spots: pd.DataFrame, truth: pd.DataFrame) -> tuple[float, float, float]:
     """RMS z error (nm) of ``spots`` against the nearest true molecule within 250 nm laterally,
-    at any depth, after one z offset."""
+    at any depth, after one z offset, its standard error, and the RMS lateral error (nm)."""
     pairs, _ = offset_pairs(truth, spots, axial_nm=1e6)
-    return float(np.sqrt(np.mean(pairs["dz_nm"] ** 2)))
+    square = pairs["dz_nm"].to_numpy() ** 2
+    rmse = float(np.sqrt(np.mean(square)))
+    se = rmse * np.std(square) / (2 * np.mean(square) * np.sqrt(square.size))
+    return rmse, float(se), float(np.sqrt(np.mean(pairs["dx_nm"] ** 2 + pairs["dy_nm"] ** 2)))
 
 
 def _small_tables(spots: pd.DataFrame, cal: Calibration, seed: int) -> str:
@@ -117,6 +129,8 @@ def _blur_se_nm(found: mismatch.Mismatch) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--right", type=int, default=3, help="more microscopes of each kind")
+    parser.add_argument("--start", type=int, default=1,
+                        help="the first of them: seed + 100 x start")  # fmt: skip
     parser.add_argument("--kinds", nargs="+", choices=list(MICROSCOPES), default=list(MICROSCOPES),
                         help="the kinds of astigmatism to run")  # fmt: skip
     args = parser.parse_args()
@@ -124,17 +138,19 @@ def main() -> None:
     chosen = {kind: MICROSCOPES[kind] for kind in args.kinds}
     draws = [(kind, seed, astig, False) for kind, (seed, astig) in chosen.items()]
     draws += [(kind, seed + 100 * k, astig, True) for kind, (seed, astig) in chosen.items()
-              for k in range(1, args.right + 1)]  # fmt: skip
+              for k in range(args.start, args.start + args.right)]  # fmt: skip
     rows = [r for draw in draws for r in scores(*draw)]
     notes = (
-        f"The calibration is blamed when the axis lies more than {mismatch.AXIS_LIMIT_DEG:g}° off, "
+        f"The calibration is blamed when the axis lies more than {mismatch.AXIS_LIMIT_DEG:g}° off "
+        f"and that turn gains χ² by more than {mismatch.AXIS_GAIN_SIGNIFICANCE:g} standard errors, "
         f"the log width ratio above {mismatch.LOG_WIDTH_LIMIT:g} or the blur beyond "
         f"{mismatch.BLUR_LIMIT_NM:g} nm, by more than {mismatch.SIGNIFICANCE:g} standard errors; "
         "median chi2 over the converged, unique spots. Took "
         f"{time.perf_counter() - start:.0f} s on a loaded machine."
     )
     table = markdown(pd.DataFrame(rows))
-    write_results("bench_wrong_calibration.md", "Wrong calibrations", started, notes, table)
+    name = "bench_wrong_calibration" + (f"_start{args.start}" if args.start != 1 else "")
+    write_results(f"{name}.md", "Wrong calibrations", started, notes, table)
     print(notes, table, sep="\n\n")
 
 

@@ -96,9 +96,9 @@ def test_a_calibration_of_another_microscope_is_caught(wrong, cause):
     """Beads of a microscope that differs in one thing calibrate it; its molecules (10³–10⁴
     photons) are localized with that calibration. Not among them: the axis turned by 90°, which
     mirrors z and fits the shapes as well as the right calibration. The axis turned by 45°: z is
-    read near focus, where that calibration's shapes come nearest the spots', so the spots'
-    ellipticity turns against the calibration's there by only −5° ± 4° (+0.19 ± 0.02 in log
-    width ratio: the spots are wider than the calibration's at that z). The wavelength 1.2x puts
+    read near focus, where that calibration's shapes come nearest the spots', and the spots are
+    wider than the calibration's at that z (+0.19 ± 0.02 in log width ratio); its curves turned
+    back fit the spots best as well. The wavelength 1.2x puts
     the log width ratio of this strongly astigmatic microscope's molecules within the right
     calibrations' range (−0.05), but their widths fall short of the calibration's by a blur of
     about 60 nm, where 100 nm beads give at most 37 nm. The issue's table: molecules within

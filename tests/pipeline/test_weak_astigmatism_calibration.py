@@ -4,13 +4,12 @@ Microscope seed 52 of :func:`latentz.simulate.molecules.random_microscope` with 
 astigmatism (widths within 0.93–1.08 of each other over ±400 nm) is calibrated on its own
 simulated 100 nm beads, or on those of the same microscope with its astigmatism turned by 45°;
 its point molecules (10³–10⁴ photons, within ±400 nm) are localized with each. The spots' own
-summed E² pointed 41° ± 14° off the right calibration's axis and condemned it; their ellipticity
-against the calibration's at their z does not. A 45° rotation, which on such microscopes doubles
-the z error (``benchmarks/results/bench_wrong_calibration.md``), is caught here; on 6 of 13 very
-weak microscopes measured it is not (``docs/single-molecules.md``). Small tables drawn from
-the right calibration's spots are not condemned either: there the spots' terms add up to too
-short a resultant for their angle to be judged
-(:data:`~latentz.localization.mismatch.MIN_RESULTANT`).
+summed E² pointed 41° ± 14° off the right calibration's axis and condemned it; the turn of the
+calibration's curves that fits the spots best (each spot at its own best z) does not. A 45°
+rotation, which on such microscopes doubles the z error
+(``benchmarks/results/bench_wrong_calibration.md``), is caught here. Small tables drawn from
+the right calibration's spots are not condemned either: a turn gains too little χ² over so few
+spots (:data:`~latentz.localization.mismatch.AXIS_GAIN_SIGNIFICANCE`).
 """
 
 from __future__ import annotations

@@ -4,23 +4,19 @@ A calibration from another microscope or camera moves z wherever the spots' shap
 matched, so each spot may look consistent while the table as a whole is not. Two things the
 z readout cannot absorb are measured over the table's converged, unique, located spots:
 
-- **the astigmatism's axis**: the rotation of the spots' ellipticity against the calibration's
-  at each spot's z, half the angle of Σ E_spot · conj(E_curve(z)), where E = e1 + i e2
-  (:func:`latentz.calibration.shape.ellipticity`) points at 2θ for an image elongated along θ.
-  Scatter of a spot's E enters this sum once, times the calibration's E, whose sign flips
-  through focus, so it widens the angle's standard error (from resampling the spots) rather
-  than turning it. The angle is judged only where the terms add up to a direction: their
-  resultant's squared length over the sum of their squared lengths, |Σ m|² / Σ |m|² (a
-  Rayleigh statistic weighted by the terms' lengths, 1 on average for terms of random phase),
-  at least :data:`MIN_RESULTANT`, or in a table of :data:`AXIS_BOOTSTRAP_SPOTS` spots or more.
-  Below both the angle of the sum is undefined and its resampled error too small: tables of
-  20–80 spots of a very weakly astigmatic microscope then blamed their right calibration. The
-  spots' own summed E² (the axis that :func:`~latentz.calibration.shape.astigmatism_angle`
-  finds) holds that scatter squared: where it differs in e1 and e2 and outweighs a weak
-  astigmatism, it turns the spots' axis by up to 45° against a right calibration's. A wrong
-  calibration reads each z where its rotated shapes come nearest the spot's, near focus where
-  its E is small and of either sign, so a 45° rotation reads as 1–30° here
-  (:data:`AXIS_LIMIT_DEG`);
+- **the astigmatism's axis**: the turn of the calibration's curves that fits the spots best.
+  Each spot's shape (wx, wy, ρ, carried to its particle's brightness as the widths below) is
+  compared, by the χ² of ``consistency_chi2``, with its particle's curves turned by each of
+  :data:`TURNS`, at the z within its in-range window where they fit best, capped at
+  :data:`AXIS_CHI2_CAP`; turns 90° apart count as one (an axis is defined modulo 90°, and a
+  90° turn mirrors z), and the turn of least summed χ² is the axis, with the χ² it gains over
+  the curves as they are. Both have standard errors from resampling the spots. Reading each
+  spot at its own best z for every turn matters: a calibration turned by 45° reads z where its
+  shapes come nearest the spot's, near focus where its ellipticity is small and of either sign,
+  and the spots' ellipticity against the calibration's at that z turns by only up to 33°. Blamed
+  beyond :data:`AXIS_LIMIT_DEG` with a gain beyond :data:`AXIS_GAIN_SIGNIFICANCE` standard
+  errors: on very weak astigmatism, where a turn barely changes the curves, a right
+  calibration's best turn lies up to 28° off by chance, but gains little;
 - **the widths**, each spot's carried to its calibration particle's brightness by the
   calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
   this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
@@ -38,12 +34,13 @@ Each width measurement's standard error holds the spots' scatter and the calibra
 uncertainty: a spot is compared with its nearest particle's curves, which stand for the spot's
 place only as well as neighbouring particles agree (:func:`_calibration_se`).
 
-The calibration is blamed when the axis (where judged) lies more than :data:`AXIS_LIMIT_DEG`
-off, the log width ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond
+The calibration is blamed when the axis lies more than :data:`AXIS_LIMIT_DEG` off with a
+significant gain, the log width ratio above :data:`LOG_WIDTH_LIMIT` or the blur beyond
 :data:`BLUR_LIMIT_NM`, by more than :data:`SIGNIFICANCE` standard errors. A
-calibration whose astigmatism lies 90° off is not seen: it reads every z mirrored (z → −z), and
-the shapes fit as well as the right calibration's; only the PSF's asymmetry about focus tells
-them apart.
+calibration whose astigmatism lies 90° off is not seen: it reads every z about mirrored
+(z → −z), and the shapes fit as well as the right calibration's. The PSF's asymmetry about
+focus does not tell them apart either: each of the two fits the spots better as it is than
+turned by 90° (docs/single-molecules.md).
 Limits and measurements: ``benchmarks/bench_wrong_calibration.py``.
 """
 
@@ -56,37 +53,34 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import warn
-from latentz.calibration.shape import ellipticity
+from latentz.localization.quality import curve_spread
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
 __all__ = ["Mismatch", "calibration_mismatch", "check_calibration_fits"]
 
-#: Rotation (degrees) of the spots' ellipticity against the calibration's beyond which the
-#: calibration is blamed. Right calibrations give within ±5.2° (± 0.4–4.9°; 17 of 21 within
-#: one standard error) on 21 microscopes of 3–90 nm RMS astigmatism and 6 more of 3–8 nm (widths
-#: within 0.93–1.08 of each other over ±400 nm). One whose astigmatism lies 45° off gives −30° to
-#: +30°: blamed by this angle on 7 of 13 very weakly astigmatic microscopes and on none of 14
-#: stronger ones (the two beyond 10° read a resultant below :data:`MIN_RESULTANT`), where the
-#: width checks blame 12 of 14; those missed that were measured
-#: against the truth (2 weak, 2 very weak) double the z error
-#: (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
+#: Turn (degrees) of the calibration's curves, fitting the spots best, beyond which the
+#: calibration is blamed. Right calibrations turn by at most 2.5° (± 0–1.4°) on microscopes of
+#: 20–90 nm RMS astigmatism and by up to 27.5° (± 2–12.5°) by chance on those of 3–8 nm, where a
+#: turn barely changes the curves; one whose astigmatism lies 45° off turns by 30–45° (± 0–3.6°)
+#: on all of them (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md).
 AXIS_LIMIT_DEG = 10.0
-#: Least resultant statistic |Σ m|² / Σ |m|² at which the axis is judged. Of 200 random draws
-#: each of 20, 40, 80 and 160 spots from the right tables of 21 microscopes (12 of very weak
-#: astigmatism, 7 weak, 2 strong), the axis alone blamed 108, 47, 1 and 0 (of 4200, 4200, 4200
-#: and 4000), all on very weak ones and at 18.4 or less, 1 of them at 15 or more; tables of
-#: 180–370 spots with a calibration turned by 45° that the axis blamed read 25–69 (very weak
-#: astigmatism; 11 and 15 on two weak microscopes whose widths blame them too), right ones
-#: 18–194 (benchmarks/bench_wrong_calibration.py, docs/single-molecules.md). It cannot exceed the
-#: number of spots: a table of 20 is judged by its axis only where all its terms align.
-MIN_RESULTANT = 20.0
-#: Spots from which the resampled error of the axis holds its spread whatever the resultant:
-#: the draws above blamed 1 right table in 4200 at 80 spots and none in 4000 at 160, and the
-#: fit3Dcspline bead (129 planes) under the SMLM 2016 calibration reads −43 ± 5° at a resultant
-#: of 7 (tests/pipeline/test_quality.py).
-AXIS_BOOTSTRAP_SPOTS = 100
+#: Standard errors by which the χ² that turn gains must exceed zero to blame the calibration.
+#: Right calibrations gain at most 2.5 standard errors (on 3–8 nm RMS astigmatism; 0–1.4 on
+#: stronger), and none of 6,300 tables of 20–80 of their spots is blamed; a calibration turned
+#: by 45° gains 4.0–10 on microscopes of 3–8 nm (3.98 on one of 14: missed), 10–22 on 20–30 nm
+#: and 16–34 on 50–90 nm (the same sources).
+AXIS_GAIN_SIGNIFICANCE = 4.0
+#: Turns (rad) of the calibration's curves tried: every 2.5° over 180°.
+TURNS = np.radians(np.arange(-90.0, 90.0, 2.5))
+#: Step (nm) of the z at which each turned curve is compared with a spot.
+Z_STEP_NM = 10.0
+#: Most χ² one spot adds to a turn's sum: χ²(2)'s 99.9 % point, so that a spot no turn fits
+#: (a neighbour's light) does not choose the turn.
+AXIS_CHI2_CAP = 13.8
+#: Most spots the axis is measured on (drawn at random from larger tables).
+AXIS_SPOTS = 1000
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
 #: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
@@ -115,14 +109,16 @@ SIGNIFICANCE = 1.0
 #: Fewest checked spots that measure anything.
 MIN_SPOTS = 20
 _RESAMPLES = 200
+_SHAPE = ("wx", "wy", "rho")
 
 
 class Mismatch(NamedTuple):
     """What :func:`calibration_mismatch` measures (NaN where too few spots)."""
 
-    axis_deg: float  #: spots' ellipticity turned from the calibration's at their z, ° in [−45, 45)
+    axis_deg: float  #: turn of the calibration's curves that fits the spots best, ° in [−45, 45)
     axis_se_deg: float
-    axis_resultant: float  #: |Σ m|² / Σ |m|² of the axis's terms (:data:`MIN_RESULTANT`)
+    axis_gain: float  #: the spots' summed shape χ² less with that turn than without
+    axis_gain_se: float
     log_width: float  #: log of the spots' mean width over the calibration's
     log_width_se: float
     blur_nm2: float  #: the calibration's squared widths less the spots', nm²
@@ -137,8 +133,7 @@ class Mismatch(NamedTuple):
     @property
     def axis_off(self) -> bool:
         beyond = abs(self.axis_deg) - SIGNIFICANCE * self.axis_se_deg > AXIS_LIMIT_DEG
-        judged = self.axis_resultant >= MIN_RESULTANT or self.spots >= AXIS_BOOTSTRAP_SPOTS
-        return bool(judged and beyond)
+        return bool(beyond and self.axis_gain > AXIS_GAIN_SIGNIFICANCE * self.axis_gain_se)
 
     @property
     def widths_off(self) -> bool:
@@ -152,25 +147,69 @@ def _checked(table: pd.DataFrame) -> np.ndarray:
     return ok & ~table["duplicate"].to_numpy(bool)
 
 
-def _spin(wx: np.ndarray, wy: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    """Ellipticity E = e1 + i e2 of shapes (wx, wy, ρ)."""
-    e1, e2 = ellipticity(wx, wy, rho)
-    return e1 + 1j * e2
+def _rotated(
+    wx: np.ndarray, wy: np.ndarray, rho: np.ndarray, phi: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shapes (wx, wy in px, ρ) of the images (wx, wy, ρ) turned by ``phi`` (rad)."""
+    c, s = np.cos(phi), np.sin(phi)
+    xx, yy, xy = wx**2, wy**2, rho * wx * wy
+    new_xx = c * c * xx - 2 * c * s * xy + s * s * yy
+    new_yy = s * s * xx + 2 * c * s * xy + c * c * yy
+    new_xy = c * s * (xx - yy) + (c * c - s * s) * xy
+    new_wx, new_wy = np.sqrt(new_xx), np.sqrt(new_yy)
+    return new_wx, new_wy, new_xy / (new_wx * new_wy)
 
 
-def _axis(spots: pd.DataFrame, cal: Calibration, seed: int) -> tuple[float, float, float]:
-    """Rotation (rad, in [−π/4, π/4)) of the spots' ellipticity against their particle's curves
-    at their z, half the angle of Σ m with m = E_spot · conj(E_curve), its standard error over
-    :data:`_RESAMPLES` resamples of the spots, and the resultant statistic |Σ m|² / Σ |m|²."""
-    curves = cal.curves_at(spots["cal_particle"].to_numpy(int), spots["z_nm"].to_numpy(float))
-    spot = _spin(*(spots[c].to_numpy(float) for c in ("wx", "wy", "rho")))
-    match = spot * np.conj(_spin(curves["wx"], curves["wy"], curves["rho"]))
-    match = match[np.isfinite(match)]
-    angle = _wrap(np.angle(match.sum()) / 2)
-    draws = np.random.default_rng(seed).integers(0, match.size, (_RESAMPLES, match.size))
-    spread = _wrap(np.angle(match[draws].sum(axis=1)) / 2 - angle)
-    resultant = abs(match.sum()) ** 2 / np.sum(np.abs(match) ** 2)
-    return float(angle), float(np.std(spread)), float(resultant)
+def _turn_chi2(spots: pd.DataFrame, cal: Calibration) -> np.ndarray:
+    """(:data:`TURNS`, spots) each spot's shape χ² (wx, wy, ρ carried to its particle's
+    brightness, σ of :func:`~latentz.localization.quality.curve_spread`) against its particle's
+    curves turned by each of :data:`TURNS`, at the z (steps of :data:`Z_STEP_NM` within the
+    spot's in-range window) where they fit best, capped at :data:`AXIS_CHI2_CAP`."""
+    p, z = spots["cal_particle"].to_numpy(int), spots["z_nm"].to_numpy(float)
+    window = cal.in_range_window(p, z)
+    grid = np.arange(np.min(window[:, 0]), np.max(window[:, 1]) + Z_STEP_NM, Z_STEP_NM)
+    particle, at = np.broadcast_arrays(p[:, None], grid)
+    curves = {
+        name: v.reshape(at.shape) for name, v in cal.curves_at(particle.ravel(), at.ravel()).items()
+    }
+    outside = (at < window[:, :1]) | (at > window[:, 1:])
+    values = _carried_shapes(spots, cal)
+    own = [spots[f"{n}_err"].to_numpy(float)[:, None] if f"{n}_err" in spots else 0.0
+           for n in _SHAPE]  # fmt: skip
+    chi2 = np.empty((TURNS.size, len(spots)))
+    for k, phi in enumerate(TURNS):
+        wx, wy, rho = _rotated(np.abs(curves["wx"]), np.abs(curves["wy"]), curves["rho"], phi)
+        turned = {**curves, "wx": wx, "wy": wy, "rho": rho}
+        total = sum(((v[:, None] - turned[n]) / curve_spread(n, e, turned)) ** 2
+                    for n, v, e in zip(_SHAPE, values, own, strict=True))  # fmt: skip
+        chi2[k] = np.min(np.where(outside, np.inf, total), axis=1)
+    return np.minimum(chi2, AXIS_CHI2_CAP)
+
+
+def _axis(spots: pd.DataFrame, cal: Calibration, seed: int) -> tuple[float, float, float, float]:
+    """The turn (rad, in [−π/4, π/4)) of the calibration's curves that fits the spots best
+    (least summed :func:`_turn_chi2`, turns 90° apart taken as one: an axis is defined modulo
+    π/2), its standard error, and the χ² it gains over the curves as they are, with its
+    standard error, all over :data:`_RESAMPLES` resamples of the spots; at most
+    :data:`AXIS_SPOTS` of them, drawn at random."""
+    rng = np.random.default_rng(seed)
+    if len(spots) > AXIS_SPOTS:
+        spots = spots.iloc[np.sort(rng.choice(len(spots), AXIS_SPOTS, replace=False))]
+    chi2 = _turn_chi2(spots, cal)
+    chi2 = chi2[:, np.all(np.isfinite(chi2), axis=0)]
+    half = TURNS.size // 2  # TURNS[k + half] is TURNS[k] + 90°
+    folded = np.minimum(chi2[:half], chi2[half:])
+    turns, none = _wrap(TURNS[:half]), np.argmin(np.abs(_wrap(TURNS[:half])))
+
+    def fit(total: np.ndarray) -> tuple[float, float]:
+        best = int(np.argmin(total))
+        return float(turns[best]), float(total[none] - total[best])
+
+    angle, gain = fit(folded.sum(axis=1))
+    draws = rng.integers(0, chi2.shape[1], (_RESAMPLES, chi2.shape[1]))
+    resampled = np.array([fit(folded[:, draw].sum(axis=1)) for draw in draws])
+    spread = _wrap(resampled[:, 0] - angle)
+    return angle, float(np.std(spread)), gain, float(np.std(resampled[:, 1]))
 
 
 def _wrap(angle: np.ndarray | float) -> np.ndarray | float:
@@ -187,18 +226,21 @@ def _median(values: np.ndarray) -> tuple[float, float]:
     return centre, 1.2533 * spread / np.sqrt(values.size)
 
 
-def _carried_widths(table: pd.DataFrame, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
-    """The spots' |wx|, |wy| (px) as their calibration particle's own, brighter fit would show
-    them at their z: less the shift that the calibration's dimmed refits measure at each spot's
-    brightness (:meth:`~latentz.calibration.Calibration.shapes_at_particle_brightness`); for a
-    calibration without dimmed refits, or spots without a background, carried to the particles'
-    median photons along :data:`PHOTON_SLOPE`."""
+def _carried_shapes(
+    table: pd.DataFrame, cal: Calibration
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The spots' |wx|, |wy| (px) and ρ as their calibration particle's own, brighter fit would
+    show them at their z: less the shift that the calibration's dimmed refits measure at each
+    spot's brightness (:meth:`~latentz.calibration.Calibration.shapes_at_particle_brightness`);
+    for a calibration without dimmed refits, or spots without a background, the widths carried
+    to the particles' median photons along :data:`PHOTON_SLOPE` and ρ as fitted."""
     shapes = cal.shapes_at_particle_brightness(table)
     if shapes is not None:
-        return np.abs(shapes[:, 0]), np.abs(shapes[:, 1])
+        return np.abs(shapes[:, 0]), np.abs(shapes[:, 1]), shapes[:, 2]
     reference = np.log(np.nanmedian(cal.traces["photons"][cal.kept]))
     carry = np.exp(PHOTON_SLOPE * (reference - np.log(table["photons"].to_numpy(float))))
-    return carry * np.abs(table["wx"].to_numpy(float)), carry * np.abs(table["wy"].to_numpy(float))
+    wx, wy, rho = (table[c].to_numpy(float) for c in _SHAPE)
+    return carry * np.abs(wx), carry * np.abs(wy), rho
 
 
 def _curve_widths(cal: Calibration, p: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -263,8 +305,8 @@ def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float,
     median blur (nm², the calibration's mean squared width less the spot's), each with its
     standard error, the spots' and the calibration's own (:func:`_calibration_se`) in
     quadrature; every spot's widths carried to its particle's brightness
-    (:func:`_carried_widths`)."""
-    wx, wy = _carried_widths(table, cal)
+    (:func:`_carried_shapes`)."""
+    wx, wy, _ = _carried_shapes(table, cal)
     mean, square = _curve_widths(cal, table["cal_particle"].to_numpy(int),
                                  table["z_nm"].to_numpy(float))  # fmt: skip
     log_width, log_se = _median(np.log((wx + wy) / 2 / mean))
@@ -279,11 +321,11 @@ def calibration_mismatch(table: pd.DataFrame, calibration: Calibration) -> Misma
     checked = _checked(table)
     n = int(checked.sum())
     if n < MIN_SPOTS:
-        return Mismatch(*[np.nan] * 7, n)
+        return Mismatch(*[np.nan] * 8, n)
     spots = table[checked]
-    axis, axis_se, resultant = _axis(spots, calibration, seed=n)
+    axis, axis_se, gain, gain_se = _axis(spots, calibration, seed=n)
     return Mismatch(
-        float(np.degrees(axis)), float(np.degrees(axis_se)), resultant,
+        float(np.degrees(axis)), float(np.degrees(axis_se)), gain, gain_se,
         *_widths(spots, calibration), n,
     )  # fmt: skip
 
@@ -293,9 +335,9 @@ def _cause(mismatch: Mismatch) -> str:
     causes = []
     if mismatch.axis_off:
         causes.append(
-            f"their astigmatism lies along other axes than the calibration's "
-            f"({mismatch.axis_deg:+.0f}° ± {mismatch.axis_se_deg:.0f}°): another microscope, "
-            "or a rotated camera"
+            f"their astigmatism lies along other axes than the calibration's (its curves fit "
+            f"them best turned by {mismatch.axis_deg:+.0f}° ± {mismatch.axis_se_deg:.0f}°): "
+            "another microscope, or a rotated camera"
         )
     if mismatch.widths_off and mismatch.blur_nm > BLUR_LIMIT_NM:
         causes.append(

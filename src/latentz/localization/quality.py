@@ -56,6 +56,7 @@ __all__ = [
     "assess",
     "calibration_flags",
     "consistency",
+    "curve_spread",
     "summary",
     "good_rows",
     "QUALITY_COLUMNS",
@@ -136,6 +137,15 @@ def _duplicates_and_neighbours(spots: pd.DataFrame) -> tuple[np.ndarray, ...]:
     return duplicate, unresolved | merged
 
 
+def curve_spread(name: str, own: np.ndarray | float, curves: dict[str, np.ndarray]) -> np.ndarray:
+    """σ of a spot's ``name`` (wx, wy in px, or ρ) about calibration ``curves``
+    (:meth:`~latentz.calibration.Calibration.curves_at`): its own fit error ``own``, the curve's
+    scatter and :data:`CURVE_SCATTER` of the curve's value (of 1 for ρ), in quadrature."""
+    scale = np.abs(curves[name]) if name != "rho" else 1.0
+    scatter = curves[f"{name}_scatter"]
+    return np.sqrt(np.square(own) + scatter**2 + (CURVE_SCATTER * scale) ** 2)
+
+
 def consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:
     """χ², width ratio and axis mismatch of each spot against the calibration curves at its z
     (``z_nm`` on particle ``cal_particle``; NaN where z is)."""
@@ -151,11 +161,7 @@ def consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:
     for name in ("wx", "wy", "rho"):
         value = spots[name].to_numpy(float)[located]
         own = spots[f"{name}_err"].to_numpy(float)[located] if f"{name}_err" in spots else 0.0
-        scale = np.abs(curves[name]) if name != "rho" else 1.0
-        spread = np.sqrt(
-            np.square(own) + curves[f"{name}_scatter"] ** 2 + (CURVE_SCATTER * scale) ** 2
-        )
-        total += ((value - curves[name]) / spread) ** 2
+        total += ((value - curves[name]) / curve_spread(name, own, curves)) ** 2
     chi2[located] = total
     wx, wy, rho = (spots[c].to_numpy(float)[located] for c in ("wx", "wy", "rho"))
     ratio[located] = (np.abs(wx) + np.abs(wy)) / (np.abs(curves["wx"]) + np.abs(curves["wy"]))
