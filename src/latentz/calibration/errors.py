@@ -46,12 +46,14 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 import pandas as pd
 
+from latentz.calibration.local import row_mean
+
 if TYPE_CHECKING:
     from latentz.calibration.polymodel import PolyModel
 
 __all__ = [
     "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise", "noise_by_z", "spread_through",
+    "measured_noise", "noise_by_z", "reference_sigma", "spread_through",
 ]  # fmt: skip
 
 #: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
@@ -64,6 +66,9 @@ MIN_PER_BIN = 30
 ONE_SIGMA = 0.6827
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
+#: Share of its peak amplitude A(z) above which a particle is within its depth of focus
+#: (:func:`reference_sigma`).
+DEPTH_FRACTION = 0.5
 #: Equally spaced nodes (in σ) and normal weights for :func:`spread_through`: each node is clipped
 #: to the span, so the normal's mass beyond an end sits at that end.
 _NODES = np.linspace(-5.0, 5.0, 41)
@@ -230,6 +235,39 @@ def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]
     if floor < 0:
         return 0.0, mean_e / mean_d
     return floor, slope
+
+
+def reference_sigma(positions: np.ndarray, delta: PolyModel, z_f: np.ndarray,
+                    span: np.ndarray, half_depth_nm: float, *,
+                    points: int = 21) -> np.ndarray:  # fmt: skip
+    """1σ (``delta``'s units, (n,)) of each particle's lateral reference: how far its fitted
+    centre travels off the field's plane within the depth of focus.
+
+    Δ(z) is measured from the particle's centre at its best focus ``z_f`` (nm, (n,)), taken to
+    be its place. With coma the fitted centre moves through focus, and where along that travel
+    the place lies the images do not say; the same coma moves the reference at z_f, across the
+    field as the travel does. Only the part of the references that is not a plane across the
+    field is an error (a plane is a shift, tilt or scale of the whole field). So at each of
+    ``points`` offsets t from −``half_depth_nm`` to +``half_depth_nm`` the plane in
+    ``positions`` ((n, 2), px) of Δ(z_f + t) over the particles is taken off, and each
+    particle's σ is the RMS of what remains of its Δ over the t within its ``span`` ((n, 2),
+    nm; Δ is not extrapolated). NaN for a particle with none; zero with fewer than four
+    particles (no plane to take off with any left over)."""
+    n = len(positions)
+    if n < 4:
+        return np.zeros(n)
+    t = np.linspace(-half_depth_nm, half_depth_nm, points)
+    z = np.asarray(z_f, dtype=np.float64)[:, None] + t[None]
+    inside = (z >= span[:, :1]) & (z <= span[:, 1:])
+    values = np.where(inside, delta(np.where(inside, z, 0.0)), np.nan)
+    design = np.column_stack([np.ones(n), positions])
+    off_plane = np.full(values.shape, np.nan)
+    for k in range(points):
+        use = np.isfinite(values[:, k])
+        if use.sum() >= 4:
+            coef = np.linalg.lstsq(design[use], values[use, k], rcond=None)[0]
+            off_plane[use, k] = values[use, k] - design[use] @ coef
+    return np.sqrt(row_mean(off_plane**2))
 
 
 def spread_through(

@@ -26,16 +26,24 @@ from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.dimming import background_ratio
 from latentz.calibration.errors import (
+    DEPTH_FRACTION,
     FieldLine,
     combine,
     field_line,
     fit_sigma_s,
     measured_noise,
     noise_by_z,
+    reference_sigma,
     spread_through,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
-from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
+from latentz.calibration.local import (
+    LocalModels,
+    LocalOptions,
+    focus_depth_nm,
+    row_mean,
+    sliding_rms,
+)
 from latentz.calibration.readout import SHAPE_PARAMS, JointZ, joint_z, shape_covariance
 from latentz.calibration.reference import ReferenceField
 from latentz.calibration.rows import interp_rows, row_weights
@@ -587,6 +595,26 @@ class Calibration:
         line = self._held_out_line(lambda: self.crossval_of(kind), kind, axis,
                                    f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
+
+    def _reference_sigma(self, axis: str) -> np.ndarray:
+        """(n,) nm: 1σ of each particle's lateral reference on ``axis`` ("x" or "y"), the RMS
+        of its Δx'(z) or Δy'(z) off the kept particles' plane within the depth of focus about
+        its z_f (:func:`~latentz.calibration.errors.reference_sigma`; the depth is the median
+        over the kept particles of :func:`~latentz.calibration.local.focus_depth_nm` at
+        :data:`~latentz.calibration.errors.DEPTH_FRACTION`); NaN for culled particles."""
+        key = f"reference_sigma/{axis}"
+        if key not in self._cache:
+            kept = self.kept
+            depth = focus_depth_nm(self.local.z_nm[kept], self.traces["amplitude"][kept],
+                                   DEPTH_FRACTION)  # fmt: skip
+            model = (self.local.dx if axis == "x" else self.local.dy)[kept]
+            out = np.full(len(self.traces), np.nan)
+            if kept.size:
+                half = float(np.nanmedian(depth))
+                z_f, span = self.local.z_f[kept], self.z_span_nm[kept]
+                out[kept] = reference_sigma(self.positions[kept], model, z_f, span, half)
+            self._cache[key] = out * self.camera.pixel_size_nm
+        return self._cache[key]
 
     def _carried_noise(self, held_out: pd.DataFrame, axis: str) -> np.ndarray:
         """(rows,) nm: how far the held-out particles' own z noise moves their lateral
@@ -1172,8 +1200,8 @@ class Calibration:
         (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
         particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
         where a spot in range lies, :meth:`in_range_window`: the width that holds 68 % of the
-        normal's weight, not the RMS, which the curve's steep ends rule), and the field model's
-        (:meth:`_field_sigma`)."""
+        normal's weight, not the RMS, which the curve's steep ends rule), the field model's
+        (:meth:`_field_sigma`) and the particle's own reference (:meth:`_reference_sigma`)."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
@@ -1186,7 +1214,8 @@ class Calibration:
             own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-        return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
+        reference = self._reference_sigma(axis)[p]  # nm
+        return combine(own * px, model_d * px, lack * px, from_z * px, field_d, reference)
 
 
 def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
