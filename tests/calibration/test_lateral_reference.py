@@ -5,9 +5,10 @@ centre moves through focus, and the particle's place lies somewhere along that p
 centre at focus by an amount that follows the coma across the field. Here each microscope's
 images move in y by α(place) · (z − z_f − t*) · SLOPE: a smooth random coma field α of the
 place (not a plane) and a place that lies on the path at t* from focus. Over the microscopes t*
-steps evenly across the depth of focus (where the image's amplitude is at least half its peak,
-from the image model of ``calib_synthetic``), and emitters between the particles are read with
-the particles' calibration. Truth is geometric: where each emitter was put.
+steps evenly across the depth of focus (where the image's amplitude is at least
+:data:`~latentz.calibration.errors.DEPTH_FRACTION` of its peak, from the image model of
+``calib_synthetic``), and emitters between the particles are read with the particles'
+calibration. Truth is geometric: where each emitter was put.
 """
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from calib_synthetic import make_traces, widths
 
 from latentz.calibration import calibrate_traces
+from latentz.calibration.errors import DEPTH_FRACTION
 from latentz.calibration.traces import Traces, traces_table
 
 Z = np.arange(-2000.0, 2000.1, 50.0)
@@ -30,10 +32,11 @@ def _coma(rng, wavelength_px: float = 250.0, waves: int = 8):
 
 
 def _half_depth_nm() -> float:
-    """Half the z extent where the images' amplitude N / (2π σ1 σ2) is at least half its peak."""
+    """Half the z extent where the images' amplitude N / (2π σ1 σ2) is at least
+    :data:`DEPTH_FRACTION` of its peak."""
     t = np.linspace(-3000.0, 3000.0, 60001)
     _, _, _, s1, s2 = widths(t, 0.0, theta=np.pi / 4)
-    inside = t[s1 * s2 <= 2 * np.min(s1 * s2)]
+    inside = t[s1 * s2 <= np.min(s1 * s2) / DEPTH_FRACTION]
     return float(inside[-1] - inside[0]) / 2
 
 

@@ -596,24 +596,23 @@ class Calibration:
                                    f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
 
-    def _reference_sigma(self, axis: str) -> np.ndarray:
-        """(n,) nm: 1σ of each particle's lateral reference on ``axis`` ("x" or "y"), the RMS
-        of its Δx'(z) or Δy'(z) off the kept particles' plane within the depth of focus about
-        its z_f (:func:`~latentz.calibration.errors.reference_sigma`; the depth is the median
-        over the kept particles of :func:`~latentz.calibration.local.focus_depth_nm` at
-        :data:`~latentz.calibration.errors.DEPTH_FRACTION`); NaN for culled particles."""
+    def _reference_sigma(self, axis: str) -> float:
+        """1σ (nm) of the particles' lateral reference on ``axis`` ("x" or "y"): the RMS of
+        the kept particles' Δx'(z) or Δy'(z) off their plane across the field within the depth
+        of focus about each z_f (:func:`~latentz.calibration.errors.reference_sigma`; the depth
+        is the median over the kept particles of :func:`~latentz.calibration.local.
+        focus_depth_nm` at :data:`~latentz.calibration.errors.DEPTH_FRACTION`)."""
         key = f"reference_sigma/{axis}"
         if key not in self._cache:
-            kept = self.kept
-            depth = focus_depth_nm(self.local.z_nm[kept], self.traces["amplitude"][kept],
-                                   DEPTH_FRACTION)  # fmt: skip
-            model = (self.local.dx if axis == "x" else self.local.dy)[kept]
-            out = np.full(len(self.traces), np.nan)
+            kept, sigma = self.kept, 0.0
             if kept.size:
-                half = float(np.nanmedian(depth))
+                depth = focus_depth_nm(self.local.z_nm[kept], self.traces["amplitude"][kept],
+                                       DEPTH_FRACTION)  # fmt: skip
+                model = (self.local.dx if axis == "x" else self.local.dy)[kept]
                 z_f, span = self.local.z_f[kept], self.z_span_nm[kept]
-                out[kept] = reference_sigma(self.positions[kept], model, z_f, span, half)
-            self._cache[key] = out * self.camera.pixel_size_nm
+                sigma = reference_sigma(self.positions[kept], model, z_f, span,
+                                        float(np.nanmedian(depth)))  # fmt: skip
+            self._cache[key] = sigma * self.camera.pixel_size_nm
         return self._cache[key]
 
     def _carried_noise(self, held_out: pd.DataFrame, axis: str) -> np.ndarray:
@@ -1214,7 +1213,7 @@ class Calibration:
             own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-        reference = self._reference_sigma(axis)[p]  # nm
+        reference = np.full(z.shape, self._reference_sigma(axis))  # nm
         return combine(own * px, model_d * px, lack * px, from_z * px, field_d, reference)
 
 
