@@ -972,6 +972,7 @@ class Calibration:
         error_parts: bool = False,
         z_readout: str = "shape",
         errors: bool = True,
+        lateral_reference: str = "place",
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
@@ -1012,6 +1013,12 @@ class Calibration:
         errors : bool
             False: the places alone, without the ``*_err_nm`` columns, whose computation is
             skipped (for a caller that only asks where the spots are).
+        lateral_reference : {"place", "focus"}
+            What ``x_err_nm``, ``y_err_nm`` are errors against: "place", where the emitter is,
+            so that they hold the calibration particles' own reference (their fitted centre at
+            best focus, off their place under coma: :meth:`_reference_sigma`); or "focus", the
+            paper's convention, where a particle is its fitted centre at best focus and that
+            reference is exact.
 
         Returns
         -------
@@ -1026,10 +1033,11 @@ class Calibration:
         """
         if error_parts and not errors:
             raise ValueError("error_parts=True needs the errors: leave errors=True.")
+        check_choice("lateral_reference", lateral_reference, ("place", "focus"))
         placed = self._place(spots, amplitude_reference, z_readout)
         out = {"x_nm": placed.x_nm, "y_nm": placed.y_nm, "z_nm": placed.z}
         if errors:
-            out = self._errors(placed, z_readout, error_parts)
+            out = self._errors(placed, z_readout, error_parts, lateral_reference == "place")
         return with_columns(spots, out | {"in_range": placed.in_range, "cal_particle": placed.p})
 
     def _place(self, spots: pd.DataFrame, amplitude_reference: str, z_readout: str) -> _Placed:
@@ -1071,10 +1079,12 @@ class Calibration:
             place[axis] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
         return _Placed(cols, p, s, z, in_range, place["x"], place["y"], joint, ref, ref_scatter)
 
-    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool) -> dict[str, np.ndarray]:
+    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool,
+                reference: bool) -> dict[str, np.ndarray]:  # fmt: skip
         """:meth:`apply`'s columns of the ``placed`` spots, their places with their errors
         (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm, z_nm, z_err_nm, and with
-        ``error_parts`` z_err_fit_nm and z_err_field_nm."""
+        ``error_parts`` z_err_fit_nm and z_err_field_nm; laterally with the particles' own
+        reference (``reference``) or without."""
         cols, p, z, in_range = placed.cols, placed.p, placed.z, placed.in_range
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         at = row_weights(self.local.z_nm, p, z)
@@ -1083,6 +1093,8 @@ class Calibration:
         out = {}
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
             err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
+            if reference:
+                err = combine(err, np.full(err.shape, self._reference_sigma(axis)))
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
@@ -1200,7 +1212,8 @@ class Calibration:
         particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
         where a spot in range lies, :meth:`in_range_window`: the width that holds 68 % of the
         normal's weight, not the RMS, which the curve's steep ends rule), the field model's
-        (:meth:`_field_sigma`) and the particle's own reference (:meth:`_reference_sigma`)."""
+        (:meth:`_field_sigma`); the particles' own reference (:meth:`_reference_sigma`) is
+        :meth:`apply`'s to add."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)
@@ -1213,8 +1226,7 @@ class Calibration:
             own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
         lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-        reference = np.full(z.shape, self._reference_sigma(axis))  # nm
-        return combine(own * px, model_d * px, lack * px, from_z * px, field_d, reference)
+        return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
 
 
 def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
