@@ -76,8 +76,8 @@ def test_y_sigma_holds_the_particles_reference_under_coma(microscopes):
     references, α · t* · SLOPE, and the reference part of σ_y² is the mean square of α's
     travel off the plane within the depth of focus ±h, α² · SLOPE² · h²/3: per microscope
     mean(err²) / mean(σ_y²) is about t*² / (h²/3), which averages 1 over the t*. Without the
-    reference part σ_y held the fits and the field model alone: that ratio was 0.7–40 (15 on
-    average)."""
+    reference part (``lateral_reference="focus"``) σ_y holds the fits and the field model
+    alone: that ratio is 0.4–18 (7 on average)."""
     half = _half_depth_nm()
     measured, expected = [], []
     for cal, spots, true_y, t_star in microscopes:
