@@ -8,9 +8,10 @@ gives the lateral field σ does not see it. For each family draw
 (:func:`latentz.validation.family.draw_microscope`, calibrated with defaults): the kept
 particles' position at z_f (their traces less their Δ) minus the place the simulation put them
 (``calibration_truth``), RMS about a plane in (x, y) as the scoring removes one (``ref x``,
-``ref y``, nm); beside it the test spots' lateral RMSE and 1σ coverage after one plane
-(:func:`latentz.validation.truth.score`), the median reported σ and the median of its field
-part (the held-out line at the spot's z and distance). Writes
+``ref y``, nm), and the part of σ that stands for it (``part x``, ``part y``, nm:
+``Calibration._reference_sigma``); beside them the test spots' lateral RMSE and 1σ coverage
+after one plane (:func:`latentz.validation.truth.score`), the median reported σ and the median
+of its field part (the held-out line at the spot's z and distance). Writes
 ``results/bench_lateral_reference.md``.
 
 Run: ``python benchmarks/bench_lateral_reference.py [--draws 4] [--first 0] [--size ci]``.
@@ -83,6 +84,7 @@ def row_of(seed: int, size: str, renders: Path | None = None) -> dict:
     distance = cKDTree(cal.positions[cal.kept]).query(used[["x", "y"]].to_numpy())[0]
     z = used["z_nm"].to_numpy()
     row |= {"particles": int(cal.kept.size), "ref x": ref["x"], "ref y": ref["y"],
+            "part x": cal._reference_sigma("x"), "part y": cal._reference_sigma("y"),
             "spots": int(errors["spots"]), "x RMSE": errors["rmse_x"],
             "y RMSE": errors["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
             "σ x": float(used["x_err_nm"].median()), "σ y": float(used["y_err_nm"].median()),
@@ -101,7 +103,8 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
         "on a shared, loaded 2-core machine).",
         "",
         "`ref x`, `ref y`: the kept particles' position at z_f less their true place, RMS about "
-        "a plane (nm); RMSE and `cov` (share of |error| ≤ 1σ) of the test spots after one plane "
+        "a plane (nm); `part x`, `part y`: the part of σ that stands for it (nm); RMSE and "
+        "`cov` (share of |error| ≤ 1σ) of the test spots after one plane "
         "per axis; `σ`, `field σ`: medians over the spots of the reported σ and its field part "
         "(nm). Coma: RMS of the mean coma and of its variation over the field (nm).",
         "",

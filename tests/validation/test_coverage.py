@@ -69,7 +69,8 @@ def simulator_errors():
                                       **common)  # fmt: skip
     cal = lz.calibrate(cal_ds.stacks, cal_ds.z_nm, camera=cal_ds.camera, shape="rho_w",
                        roi_size=ROI, field_model="zernike")  # fmt: skip
-    located = cal.apply(localize_dataset(test_ds, roi_size=ROI))
+    # laterally against the particles' own focus, the paper's convention (lateral_reference)
+    located = cal.apply(localize_dataset(test_ds, roi_size=ROI), lateral_reference="focus")
     focus = focus_positions(test_ds, roi_size=ROI)
     errors = error_table(located, test_ds, focal_plane(cal_ds.truth), focus=focus)
     return errors[errors["in_range"]]

@@ -1,7 +1,7 @@
 """The uncertainty model of :meth:`Calibration.apply`: what ``x_err_nm``, ``y_err_nm`` and
 ``z_err_nm`` are made of.
 
-Three independent parts, added in quadrature:
+Independent parts, added in quadrature (three in z, four laterally):
 
 1. **the fit's precision**: with the joint readout, the curvature of its distance to the
    calibration curves (:mod:`latentz.calibration.readout`); with the one shape value, the
@@ -28,7 +28,11 @@ Three independent parts, added in quadrature:
    nearest other particles (:func:`~latentz.calibration.dim_crossval.pair_table`), which
    reaches twice the particles' spacing: a spot beyond the outer particles or in a gap is
    farther than any held-out one. That line is ``nearest``'s error; for another field model
-   it counts only beyond the distances that model's cross-validation held out.
+   it counts only beyond the distances that model's cross-validation held out;
+4. laterally, **the particle's own reference**: Δx', Δy' are measured from its centre at z_f,
+   which under coma lies off its place by about as much as that centre travels within the
+   depth of focus; neither part 2 nor the cross-validation of part 3 sees it
+   (:func:`reference_sigma`).
 
 Part 1 is checked against the calibration's own images (:func:`measured_noise`): where they
 scatter about their z(s) curve less than their fit errors say, the camera's noise model
@@ -51,7 +55,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise", "noise_by_z", "spread_through",
+    "measured_noise", "noise_by_z", "reference_sigma", "spread_through",
 ]  # fmt: skip
 
 #: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
@@ -64,6 +68,10 @@ MIN_PER_BIN = 30
 ONE_SIGMA = 0.6827
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
+#: Share of its peak amplitude A(z) above which a particle is within its depth of focus
+#: (:func:`reference_sigma`): 1/√2, where the image's area (∝ photons / A) is √2 times its
+#: smallest.
+DEPTH_FRACTION = 2**-0.5
 #: Equally spaced nodes (in σ) and normal weights for :func:`spread_through`: each node is clipped
 #: to the span, so the normal's mass beyond an end sits at that end.
 _NODES = np.linspace(-5.0, 5.0, 41)
@@ -230,6 +238,38 @@ def _floor_and_slope(err2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]
     if floor < 0:
         return 0.0, mean_e / mean_d
     return floor, slope
+
+
+def reference_sigma(positions: np.ndarray, delta: PolyModel, z_f: np.ndarray,
+                    span: np.ndarray, half_depth_nm: float, *,
+                    points: int = 21) -> float:  # fmt: skip
+    """1σ (``delta``'s units) of the particles' lateral reference: how far their fitted centres
+    travel off the field's plane within the depth of focus.
+
+    Δ(z) is measured from each particle's centre at its best focus ``z_f`` (nm, (n,)), taken to
+    be its place. With coma the fitted centre moves through focus, and where along that travel
+    the place lies the images do not say; the same coma moves the reference at z_f, across the
+    field as it moves the travel. Only the part of the references that is not a plane across
+    the field is an error (a plane is a shift, tilt or scale of the whole field). So at each of
+    ``points`` offsets t from −``half_depth_nm`` to +``half_depth_nm`` the least-squares plane
+    in ``positions`` ((n, 2), px) of the particles' Δ(z_f + t) is taken off, and the σ is the
+    RMS of what remains over the particles and the t within each one's ``span`` ((n, 2), nm;
+    Δ is not extrapolated): the reference's error if the place lies anywhere along the travel
+    within the depth, evenly. Zero with fewer than four particles at every t (no plane to take
+    off with any left over)."""
+    n = len(positions)
+    t = np.linspace(-half_depth_nm, half_depth_nm, points)
+    z = np.asarray(z_f, dtype=np.float64)[:, None] + t[None]
+    inside = (z >= span[:, :1]) & (z <= span[:, 1:])
+    values = np.where(inside, delta(np.where(inside, z, 0.0)), np.nan)
+    design = np.column_stack([np.ones(n), positions])
+    squares = []
+    for k in range(points):
+        use = np.isfinite(values[:, k])
+        if use.sum() >= 4:
+            coef = np.linalg.lstsq(design[use], values[use, k], rcond=None)[0]
+            squares.append((values[use, k] - design[use] @ coef) ** 2)
+    return float(np.sqrt(np.mean(np.concatenate(squares)))) if squares else 0.0
 
 
 def spread_through(

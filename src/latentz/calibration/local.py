@@ -27,6 +27,7 @@ from latentz.calibration.traces import Traces
 __all__ = [
     "LocalOptions",
     "best_focus",
+    "focus_depth_nm",
     "ShapeModel",
     "LocalModels",
     "fit_local",
@@ -201,6 +202,15 @@ def _focus_window(z: np.ndarray, amp: np.ndarray, fraction: float, min_planes: i
     left = np.minimum(left, np.maximum(top - half, 0))
     right = np.maximum(right, np.minimum(top + half, n_z - 1))
     return _between(left, right, n_z) & np.isfinite(amp)
+
+
+def focus_depth_nm(z: np.ndarray, amplitude: np.ndarray, fraction: float) -> np.ndarray:
+    """Half the z extent (nm, (n,)) of the contiguous planes about each trace's maximum where
+    its amplitude A (n, n_z) is at least ``fraction`` of that maximum; ``z`` (n, n_z) nm."""
+    window = _focus_window(z, amplitude, fraction, 1)
+    inside = np.where(window, z, np.nan)
+    with np.errstate(invalid="ignore"):
+        return (np.fmax.reduce(inside, axis=1) - np.fmin.reduce(inside, axis=1)) / 2
 
 
 def _run_bounds(breaks: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -26,16 +26,24 @@ from latentz._shared.sanity import check_roi_size, check_widths
 from latentz._shared.validate import check_choice, check_columns
 from latentz.calibration.dimming import background_ratio
 from latentz.calibration.errors import (
+    DEPTH_FRACTION,
     FieldLine,
     combine,
     field_line,
     fit_sigma_s,
     measured_noise,
     noise_by_z,
+    reference_sigma,
     spread_through,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
-from latentz.calibration.local import LocalModels, LocalOptions, row_mean, sliding_rms
+from latentz.calibration.local import (
+    LocalModels,
+    LocalOptions,
+    focus_depth_nm,
+    row_mean,
+    sliding_rms,
+)
 from latentz.calibration.readout import SHAPE_PARAMS, JointZ, joint_z, shape_covariance
 from latentz.calibration.reference import ReferenceField
 from latentz.calibration.rows import interp_rows, row_weights
@@ -588,6 +596,25 @@ class Calibration:
                                    f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
 
+    def _reference_sigma(self, axis: str) -> float:
+        """1σ (nm) of the particles' lateral reference on ``axis`` ("x" or "y"): the RMS of
+        the kept particles' Δx'(z) or Δy'(z) off their plane across the field within the depth
+        of focus about each z_f (:func:`~latentz.calibration.errors.reference_sigma`; the depth
+        is the median over the kept particles of :func:`~latentz.calibration.local.
+        focus_depth_nm` at :data:`~latentz.calibration.errors.DEPTH_FRACTION`)."""
+        key = f"reference_sigma/{axis}"
+        if key not in self._cache:
+            kept, sigma = self.kept, 0.0
+            if kept.size:
+                depth = focus_depth_nm(self.local.z_nm[kept], self.traces["amplitude"][kept],
+                                       DEPTH_FRACTION)  # fmt: skip
+                model = (self.local.dx if axis == "x" else self.local.dy)[kept]
+                z_f, span = self.local.z_f[kept], self.z_span_nm[kept]
+                sigma = reference_sigma(self.positions[kept], model, z_f, span,
+                                        float(np.nanmedian(depth)))  # fmt: skip
+            self._cache[key] = sigma * self.camera.pixel_size_nm
+        return self._cache[key]
+
     def _carried_noise(self, held_out: pd.DataFrame, axis: str) -> np.ndarray:
         """(rows,) nm: how far the held-out particles' own z noise moves their lateral
         ``axis`` error (:func:`~latentz.calibration.crossval.crossval` reads Δx', Δy' at the
@@ -945,6 +972,7 @@ class Calibration:
         error_parts: bool = False,
         z_readout: str = "shape",
         errors: bool = True,
+        lateral_reference: str = "place",
     ) -> pd.DataFrame:
         """Localize spots in 3D with the widefield models (or the nearest particle's).
 
@@ -985,6 +1013,12 @@ class Calibration:
         errors : bool
             False: the places alone, without the ``*_err_nm`` columns, whose computation is
             skipped (for a caller that only asks where the spots are).
+        lateral_reference : {"place", "focus"}
+            What ``x_err_nm``, ``y_err_nm`` are errors against: "place", where the emitter is,
+            so that they hold the calibration particles' own reference (their fitted centre at
+            best focus, off their place under coma: :meth:`_reference_sigma`); or "focus", the
+            paper's convention, where a particle is its fitted centre at best focus and that
+            reference is exact.
 
         Returns
         -------
@@ -999,10 +1033,11 @@ class Calibration:
         """
         if error_parts and not errors:
             raise ValueError("error_parts=True needs the errors: leave errors=True.")
+        check_choice("lateral_reference", lateral_reference, ("place", "focus"))
         placed = self._place(spots, amplitude_reference, z_readout)
         out = {"x_nm": placed.x_nm, "y_nm": placed.y_nm, "z_nm": placed.z}
         if errors:
-            out = self._errors(placed, z_readout, error_parts)
+            out = self._errors(placed, z_readout, error_parts, lateral_reference == "place")
         return with_columns(spots, out | {"in_range": placed.in_range, "cal_particle": placed.p})
 
     def _place(self, spots: pd.DataFrame, amplitude_reference: str, z_readout: str) -> _Placed:
@@ -1044,10 +1079,12 @@ class Calibration:
             place[axis] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
         return _Placed(cols, p, s, z, in_range, place["x"], place["y"], joint, ref, ref_scatter)
 
-    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool) -> dict[str, np.ndarray]:
+    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool,
+                reference: bool) -> dict[str, np.ndarray]:  # fmt: skip
         """:meth:`apply`'s columns of the ``placed`` spots, their places with their errors
         (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm, z_nm, z_err_nm, and with
-        ``error_parts`` z_err_fit_nm and z_err_field_nm."""
+        ``error_parts`` z_err_fit_nm and z_err_field_nm; laterally with the particles' own
+        reference (``reference``) or without."""
         cols, p, z, in_range = placed.cols, placed.p, placed.z, placed.in_range
         distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
         at = row_weights(self.local.z_nm, p, z)
@@ -1056,6 +1093,8 @@ class Calibration:
         out = {}
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
             err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
+            if reference:
+                err = combine(err, np.full(err.shape, self._reference_sigma(axis)))
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
@@ -1172,8 +1211,9 @@ class Calibration:
         (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
         particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
         where a spot in range lies, :meth:`in_range_window`: the width that holds 68 % of the
-        normal's weight, not the RMS, which the curve's steep ends rule), and the field model's
-        (:meth:`_field_sigma`)."""
+        normal's weight, not the RMS, which the curve's steep ends rule), the field model's
+        (:meth:`_field_sigma`); the particles' own reference (:meth:`_reference_sigma`) is
+        :meth:`apply`'s to add."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy
         z_in = np.where(in_range, z, 0.0)

@@ -308,13 +308,15 @@ def widefield_study(
 
 def score(cal: Calibration, study: dict[str, Any]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Localize a :func:`widefield_study`'s test spots with ``cal``; errors against the focus
-    and the geometric truths (:func:`error_table`)."""
+    and the geometric truths (:func:`error_table`), each with the lateral σ of its own
+    convention (``Calibration.apply``'s ``lateral_reference``)."""
     from latentz.calibration.shape import uses_amplitude
 
     reference = "particle" if uses_amplitude(cal.shape) else "calibration"
-    located = cal.apply(study["spots"], amplitude_reference=reference)
     test_ds, plane = study["test_dataset"], study["plane"]
-    return (
-        error_table(located, test_ds, plane, focus=study["focus"]),
-        error_table(located, test_ds, plane, truth="geometric"),
-    )
+    return tuple(
+        error_table(cal.apply(study["spots"], amplitude_reference=reference,
+                              lateral_reference=lateral), test_ds, plane, **truth)
+        for lateral, truth in (("focus", {"focus": study["focus"]}),
+                               ("place", {"truth": "geometric"}))
+    )  # fmt: skip
