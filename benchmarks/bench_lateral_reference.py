@@ -9,7 +9,7 @@ gives the lateral field σ does not see it. For each family draw
 particles' position at z_f (their traces less their Δ) minus the place the simulation put them
 (``calibration_truth``), RMS about a plane in (x, y) as the scoring removes one (``ref x``,
 ``ref y``, nm), and the part of σ that stands for it (``part x``, ``part y``, nm:
-``Calibration._reference_sigma``); beside them the test spots' lateral RMSE and 1σ coverage
+``Calibration.reference_sigma_nm``); beside them the test spots' lateral RMSE and 1σ coverage
 after one plane (:func:`latentz.validation.truth.score`), the median reported σ and the median
 of its field part (the held-out line at the spot's z and distance). Writes
 ``results/bench_lateral_reference.md``.
@@ -84,7 +84,7 @@ def row_of(seed: int, size: str, renders: Path | None = None) -> dict:
     distance = cKDTree(cal.positions[cal.kept]).query(used[["x", "y"]].to_numpy())[0]
     z = used["z_nm"].to_numpy()
     row |= {"particles": int(cal.kept.size), "ref x": ref["x"], "ref y": ref["y"],
-            "part x": cal._reference_sigma("x"), "part y": cal._reference_sigma("y"),
+            "part x": cal.reference_sigma_nm("x"), "part y": cal.reference_sigma_nm("y"),
             "spots": int(errors["spots"]), "x RMSE": errors["rmse_x"],
             "y RMSE": errors["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
             "σ x": float(used["x_err_nm"].median()), "σ y": float(used["y_err_nm"].median()),

@@ -14,7 +14,7 @@ import pytest
 
 from latentz.validation import FAMILY_SIZES, FORMS, draw_microscope, family_data
 from latentz.validation.family import MEDIA
-from latentz.validation.truth import remove_planes, summary
+from latentz.validation.truth import coverage_interval, remove_planes, summary
 
 DRAWS = [draw_microscope(seed) for seed in range(300)]
 
@@ -94,12 +94,37 @@ def test_a_size_holds_the_drawn_stack_to_its_bounds():
         assert (draw.na, draw.form, draw.bead_nm) == (full.na, full.form, full.bead_nm)
 
 
+def test_the_coverage_interval_holds_right_errors_shared_by_each_emitters_spots():
+    # 24 spots of 6 emitters, 9.5 nm of each spot's 10 nm σ shared by its emitter's spots: right
+    # errors scored as the family scores them (one plane removed) fall inside the 99 % interval
+    # in about 99 % of tables; the interval of independent spots (no shared part) holds 76 % of
+    # them and the binomial band 64 %
+    rng = np.random.default_rng(7)
+    emitter = np.repeat(np.arange(6), 4)
+    place = rng.uniform(0, 72, (6, 2))[emitter]
+    sigma, shared = np.full(24, 10.0), 9.5
+    table = pd.DataFrame({"emitter": emitter, "x": place[:, 0], "y": place[:, 1],
+                          "in_range": True, "x_err_nm": sigma, "y_err_nm": 1.0, "z_err_nm": 1.0,
+                          "err_x_nm": 0.0, "err_y_nm": 0.0, "err_z_nm": 0.0})  # fmt: skip
+    low, high = coverage_interval(table, "x", shared)
+    band = 2.576 * np.sqrt(0.683 * 0.317 / 24)
+    inside = binomial = 0
+    for _ in range(2000):
+        errors = shared * rng.standard_normal(6)[emitter] + 3.12 * rng.standard_normal(24)
+        cover = summary(remove_planes(table.assign(err_x_nm=errors)))["cover_x"]
+        inside += low <= cover <= high
+        binomial += abs(cover - 0.683) <= band
+    assert inside / 2000 >= 0.98
+    assert binomial / 2000 < 0.9
+
+
 # A small family in CI: four draws at the "ci" size (72 x 72 px, 9 calibration particles in
 # each of two stacks through at most +-1 um, 24 test spots of 6 emitters), calibrated with
 # defaults only: every draw calibrates, and z RMSE <= 3x its oracle floor wherever the floor
-# itself calibrates. 1σ coverage of each axis lies in the 99 % binomial band of a correct error
-# model (68.3 % ± 2.58 SE; ±25 % at 24 spots), not the family's 50-85 %, which ~20 spots cannot
-# resolve. Measured figures: docs/validation-family.md.
+# itself calibrates. 1σ coverage of each axis lies in the 99 % interval of a right error model on
+# the draw's own spots (truth.coverage_interval: the particles' own lateral reference is shared by
+# an emitter's spots, and the scoring's plane is fitted to 6 emitters), not the family's 50-85 %,
+# which ~20 spots cannot resolve. Measured figures: docs/validation-family.md.
 FAMILY_SEEDS = (0, 1, 2, 3)
 
 
@@ -119,9 +144,9 @@ def test_defaults_hold_on_a_small_random_family(seed, ci_family):
     assert row["spots"] >= 10
     if not row.get("floor fails"):
         assert row["ratio"] <= 3.0, f"z RMSE on the floor's spots is {row['ratio']:.2f}x the floor"
-    band = 2.576 * np.sqrt(0.683 * 0.317 / row["spots"])
     for axis in "xyz":
-        assert abs(row[f"cov {axis}"] - 0.683) <= band, f"{axis}: {row[f'cov {axis}']:.1%}"
+        low, high = row[f"cov {axis} low"], row[f"cov {axis} high"]
+        assert low <= row[f"cov {axis}"] <= high, f"{axis}: {row[f'cov {axis}']:.1%}"
 
 
 @pytest.mark.slow

@@ -596,7 +596,7 @@ class Calibration:
                                    f"crossval_line/{kind}/{axis}")  # fmt: skip
         return line.sigma(z, distance)
 
-    def _reference_sigma(self, axis: str) -> float:
+    def reference_sigma_nm(self, axis: str) -> float:
         """1σ (nm) of the particles' lateral reference on ``axis`` ("x" or "y"): the RMS of
         the kept particles' Δx'(z) or Δy'(z) off their plane across the field within the depth
         of focus about each z_f (:func:`~latentz.calibration.errors.reference_sigma`; the depth
@@ -1016,7 +1016,7 @@ class Calibration:
         lateral_reference : {"place", "focus"}
             What ``x_err_nm``, ``y_err_nm`` are errors against: "place", where the emitter is,
             so that they hold the calibration particles' own reference (their fitted centre at
-            best focus, off their place under coma: :meth:`_reference_sigma`); or "focus", the
+            best focus, off their place under coma: :meth:`reference_sigma_nm`); or "focus", the
             paper's convention, where a particle is its fitted centre at best focus and that
             reference is exact.
 
@@ -1094,7 +1094,7 @@ class Calibration:
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
             err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
             if reference:
-                err = combine(err, np.full(err.shape, self._reference_sigma(axis)))
+                err = combine(err, np.full(err.shape, self.reference_sigma_nm(axis)))
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
@@ -1212,7 +1212,7 @@ class Calibration:
         particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
         where a spot in range lies, :meth:`in_range_window`: the width that holds 68 % of the
         normal's weight, not the RMS, which the curve's steep ends rule), the field model's
-        (:meth:`_field_sigma`); the particles' own reference (:meth:`_reference_sigma`) is
+        (:meth:`_field_sigma`); the particles' own reference (:meth:`reference_sigma_nm`) is
         :meth:`apply`'s to add."""
         px = self.camera.pixel_size_nm
         model = self.local.dx if axis == "x" else self.local.dy

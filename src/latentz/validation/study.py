@@ -10,7 +10,7 @@ import pandas as pd
 
 from latentz.validation.family import FAMILY_SIZES, draw_microscope, family_data
 from latentz.validation.floor import oracle_floor
-from latentz.validation.truth import localize_test, score, summary
+from latentz.validation.truth import coverage_interval, localize_test, score, summary
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -35,7 +35,10 @@ def run_defaults(seed: int, size: str = "full", renders: Path | None = None) -> 
     """One row for draw ``seed`` at ``size``: its settings; what ``calibrate`` chose with no
     shape, ROI or field model given (or ``fails``, the first line of its error); the spots
     found and in range; z, x and y RMSE (nm) and the 1σ coverage of each axis over every spot in
-    range (:func:`~latentz.validation.truth.summary`); the oracle floor's RMSEs (nm) over the
+    range (:func:`~latentz.validation.truth.summary`) with the 99 % interval that a right error
+    model would give it on these spots (``cov x low``, ``cov x high``, …;
+    :func:`~latentz.validation.truth.coverage_interval`, the particles' own lateral reference
+    shared by each emitter's spots); the oracle floor's RMSEs (nm) over the
     spots in range in both, latentz's z RMSE over those same spots (``z RMSE, floor's spots``)
     and their ratio; seconds taken. ``renders``: a folder that keeps the draw's images
     (:func:`~latentz.validation.family.family_data`)."""
@@ -71,6 +74,9 @@ def run_defaults(seed: int, size: str = "full", renders: Path | None = None) -> 
             "x RMSE": errors["rmse_x"], "y RMSE": errors["rmse_y"], "floor x": floor["rmse_x"],
             "floor y": floor["rmse_y"], "cov x": errors["cover_x"], "cov y": errors["cover_y"],
             "cov z": errors["cover_z"], "fails": ""}  # fmt: skip
+    for axis in "xyz":
+        shared = cal.reference_sigma_nm(axis) if axis in "xy" else 0.0
+        row[f"cov {axis} low"], row[f"cov {axis} high"] = coverage_interval(scored, axis, shared)
     row["total s"] = round(time.perf_counter() - start)
     return row
 

@@ -31,7 +31,8 @@ from latentz.validation.datasets import ValidationData
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
-__all__ = ["localize_test", "remove_planes", "score", "summary", "true_positions"]
+__all__ = ["coverage_interval", "localize_test", "remove_planes", "score", "summary",
+           "true_positions"]  # fmt: skip
 
 
 def true_positions(data: ValidationData) -> pd.DataFrame:
@@ -78,6 +79,36 @@ def remove_planes(errors: pd.DataFrame) -> pd.DataFrame:
             coef = np.linalg.lstsq(design[use], values[use], rcond=None)[0]
             out[column] = values - design @ coef
     return out
+
+
+def coverage_interval(errors: pd.DataFrame, axis: str, shared_nm: float, *,
+                      level: float = 0.99, draws: int = 4000,
+                      seed: int = 0) -> tuple[float, float]:  # fmt: skip
+    """The central ``level`` interval of the 1σ coverage on ``axis`` ("x", "y" or "z") that a
+    right error model would show on a :func:`score` table: each in-range spot's error drawn as
+    the reported σ says, ``shared_nm`` of it (nm, in quadrature) one draw per emitter, common
+    to all its spots, the rest its own, and one plane removed over the same spots as
+    :func:`remove_planes` removes it.
+
+    A part that an emitter's spots share moves all of them together, so a table of few
+    emitters scatters in coverage far more than its spots' count says, and the plane fitted to
+    them takes a share of that part off: with 24 spots of 6 emitters the coverage of right
+    errors averages well above 68 %."""
+    used = errors["in_range"].to_numpy(bool) & np.isfinite(errors[f"err_{axis}_nm"].to_numpy())
+    table = errors[used]
+    sigma = table[f"{axis}_err_nm"].to_numpy(float)
+    shared = np.minimum(shared_nm, sigma)
+    own = np.sqrt(sigma**2 - shared**2)
+    emitter = np.unique(table["emitter"].to_numpy(), return_inverse=True)[1].ravel()
+    design = np.column_stack([np.ones(len(table)), table["x"].to_numpy(), table["y"].to_numpy()])
+    rng = np.random.default_rng(seed)
+    drawn = (shared * rng.standard_normal((draws, emitter.max() + 1))[:, emitter]
+             + own * rng.standard_normal((draws, len(table))))  # fmt: skip
+    if len(table) >= 3:
+        drawn -= drawn @ design @ np.linalg.pinv(design)
+    cover = np.mean(np.abs(drawn) <= sigma, axis=1)
+    tail = (1 - level) / 2
+    return float(np.quantile(cover, tail)), float(np.quantile(cover, 1 - tail))
 
 
 def score(data: ValidationData, located: pd.DataFrame) -> pd.DataFrame:
