@@ -62,6 +62,16 @@ def test_good_keeps_the_correct_located_spots_of_a_right_calibration():
     assert locs["good"].to_numpy(bool)[located].mean() >= 0.90
 
 
+def test_out_of_range_drops_few_correct_located_spots_of_a_right_calibration():
+    """A flag may drop at most 2 % of the correct spots. Where the shape hardly changes with z,
+    σ_z from σ_s through the inverse (its normal's tails piled at the range's ends) is wider
+    than the range alone says; capped by the likelihood of wx, wy, ρ over the range, 3 of the
+    ~200 correct located spots are judged likely beyond 500 nm, not 7."""
+    locs, _ = _localized("right")
+    located = (locs["correct"] & locs["in_range"]).to_numpy(bool)
+    assert locs["out_of_range"].to_numpy(bool)[located].mean() <= 0.02
+
+
 def test_small_tables_of_a_right_calibration_of_a_very_weakly_astigmatic_microscope_pass():
     locs, calibration = _localized("right")
     spots = locs[locs["converged"] & ~locs["duplicate"] & locs["z_nm"].notna()]
