@@ -7,7 +7,7 @@ two sides of focus apart (no astigmatism), σ must reach the mirror image."""
 import numpy as np
 import pytest
 
-from latentz.calibration.readout import joint_z, shape_covariance
+from latentz.calibration.readout import joint_z, profile_width, shape_covariance
 
 N = 3000  # spots: a coverage's binomial standard error is sqrt(0.68 · 0.32 / N) ≈ 0.009
 COVERAGE_TOL = 3 * np.sqrt(0.683 * 0.317 / N)
@@ -80,6 +80,28 @@ def test_without_astigmatism_sigma_reaches_the_other_side_of_focus():
     bound = _bound(curves_at, z_true, cov)
     assert np.sqrt(np.mean((mirrored / bound) ** 2)) == pytest.approx(1.0, abs=RATIO_TOL)
     assert np.mean(np.abs(out.z_nm - z_true) < sigma) > 0.683 - COVERAGE_TOL
+
+
+def test_without_astigmatism_the_profile_over_the_window_covers_68_percent():
+    """No astigmatism: the curvature's σ, or the spread to the mirror image, spans the whole
+    range and covers ~90 % of the errors of spots in range. Their true z lie in a window
+    (-300 to 800 nm, the particle's range) and so, read inside it, do the spots: the 68 %
+    half-width of the likelihood over the window's planes covers 68 % of them."""
+    rng = np.random.default_rng(6)
+    curves_at = _curves(gamma_nm=0.0)
+    lo, hi = -300.0, 800.0
+    z_true = rng.uniform(lo, hi, N)
+    fitted, cov = _spots(curves_at, z_true, rng)
+    p = np.zeros(N, int)
+    out = joint_z(curves_at, GRID[None, :], np.zeros((1, 3)), p, fitted, cov)
+    inside = (out.z_nm >= lo) & (out.z_nm <= hi)  # in range
+    window = np.broadcast_to([lo, hi], (N, 2))
+    width = profile_width(curves_at, GRID[None, :], np.zeros((1, 3)), p, fitted, cov, out.z_nm,
+                          window)  # fmt: skip
+    error = np.abs(out.z_nm - z_true)[inside]
+    tol = 3 * np.sqrt(0.683 * 0.317 / inside.sum())
+    assert np.mean(error < width[inside]) == pytest.approx(0.683, abs=tol)
+    assert np.mean(error < np.fmax(out.sigma_nm, out.spread_nm)[inside]) > 0.85
 
 
 def test_shape_covariance_from_errors_and_correlations():

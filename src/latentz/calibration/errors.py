@@ -54,8 +54,8 @@ if TYPE_CHECKING:
     from latentz.calibration.polymodel import PolyModel
 
 __all__ = [
-    "field_sigma", "field_line", "FieldLine", "combine", "fit_covariance", "fit_sigma_s",
-    "measured_noise", "noise_by_z", "reference_sigma", "spread_through",
+    "field_sigma", "field_line", "FieldLine", "combine", "covering_width", "fit_covariance",
+    "fit_sigma_s", "measured_noise", "noise_by_z", "reference_sigma", "spread_through",
 ]  # fmt: skip
 
 #: Residual degrees of freedom in each window of :func:`noise_by_z` at least: its scale is known
@@ -300,18 +300,18 @@ def spread_through(
     if limits is not None:
         values = np.clip(values, limits[:, :1], limits[:, 1:])
     spread = np.abs(values - values[:, _NODES == 0])
-    width = _covering_width(spread) if covering else np.sqrt(spread**2 @ _WEIGHTS)
+    width = covering_width(spread, _WEIGHTS) if covering else np.sqrt(spread**2 @ _WEIGHTS)
     return np.where(np.isnan(sigma), np.nan, width)
 
 
-def _covering_width(spread: np.ndarray) -> np.ndarray:
-    """(n,) per row of |differences| (n, nodes) at :data:`_NODES`, the one that holds
-    :data:`ONE_SIGMA` of :data:`_WEIGHTS`: each node's weight spread about its value (the
-    cumulative weight at a value is that of the nodes below it and half its own), linear
-    between the values."""
+def covering_width(spread: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(n,) per row of |differences| ``spread`` (n, nodes) of ``weights`` ((nodes,) or (n,
+    nodes), each row's summing to 1), the one that holds :data:`ONE_SIGMA` of the weight: each
+    node's weight spread about its value (the cumulative weight at a value is that of the nodes
+    below it and half its own), linear between the values."""
     order = np.argsort(spread, axis=1)
     values = np.take_along_axis(spread, order, axis=1)
-    weights = _WEIGHTS[order]
+    weights = np.take_along_axis(np.broadcast_to(weights, spread.shape), order, axis=1)
     held = np.cumsum(weights, axis=1) - weights / 2
     above = np.clip(np.argmax(held >= ONE_SIGMA, axis=1), 1, spread.shape[1] - 1)
     rows = np.arange(len(spread))

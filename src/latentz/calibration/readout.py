@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SHAPE_PARAMS", "JointZ", "joint_z", "shape_covariance"]
+__all__ = ["SHAPE_PARAMS", "JointZ", "joint_z", "profile_width", "shape_covariance"]
 
 #: The fitted parameters the readout compares with the calibration curves.
 SHAPE_PARAMS = ("wx", "wy", "rho")
@@ -146,9 +146,7 @@ def _search(curves_at, z_grid, p, fitted, cov, z_only: bool = False) -> tuple[np
     grid = z_grid[p]
     weight = _weights(cov)
     by_plane = fitted if fitted.ndim == 3 else fitted[:, None, :]
-    r = by_plane - _curves(curves_at, p[:, None], grid)
-    d2 = np.einsum("mki,mij,mkj->mk", r, weight, r)
-    d2 = np.where(np.isfinite(d2), d2, np.inf)
+    d2 = _plane_distances(curves_at, grid, p, by_plane, weight)
     rows = np.arange(len(p))
     k = np.argmin(d2, axis=1)
     z = _parabola_vertex(grid, d2, k)
@@ -159,7 +157,7 @@ def _search(curves_at, z_grid, p, fitted, cov, z_only: bool = False) -> tuple[np
     if z_only:
         nothing = np.full(len(p), np.nan)
         return np.where(found, z, np.nan), nothing, nothing
-    scale = np.where(best > CHI2_HELD, best / 2, 1.0)  # curves that do not hold the spot
+    scale = _held_scale(best)
     step = np.median(np.diff(grid, axis=1), axis=1)
     slope = (_curves(curves_at, p, z + step / 2) - _curves(curves_at, p, z - step / 2)) / step[
         :, None
@@ -169,6 +167,65 @@ def _search(curves_at, z_grid, p, fitted, cov, z_only: bool = False) -> tuple[np
         within = d2 < (best + scale)[:, None]
         spread = np.max(np.where(within, np.abs(grid - z[:, None]), 0.0), axis=1)
     return tuple(np.where(found, v, np.nan) for v in (z, sigma, spread))
+
+
+def _plane_distances(curves_at: Callable, grid: np.ndarray, p: np.ndarray, by_plane: np.ndarray,
+                     weight: np.ndarray) -> np.ndarray:  # fmt: skip
+    """d² (m, planes) of fitted values ``by_plane`` (m, 1 or planes, 3) to particles ``p``'
+    curves at their planes ``grid`` (m, planes), weighted by ``weight`` (m, 3, 3); inf where
+    not finite."""
+    r = by_plane - _curves(curves_at, p[:, None], grid)
+    d2 = np.einsum("mki,mij,mkj->mk", r, weight, r)
+    return np.where(np.isfinite(d2), d2, np.inf)
+
+
+def _held_scale(best: np.ndarray) -> np.ndarray:
+    """The factor on C where the least d² ``best`` says the curves do not hold the spot."""
+    return np.where(best > CHI2_HELD, best / 2, 1.0)
+
+
+def profile_width(
+    curves_at: Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]],
+    z_grid: np.ndarray,
+    scatter: np.ndarray,
+    p: np.ndarray,
+    fitted: np.ndarray,
+    cov: np.ndarray,
+    z: np.ndarray,
+    window: np.ndarray,
+) -> np.ndarray:
+    """The 68 % half-width (nm, (n,)) about each spot's ``z`` of its likelihood over the
+    planes of its particle that lie in ``window`` ((n, 2), nm: where a spot in range lies).
+
+    Each plane weighs ``exp(−(d² − d²_min) / 2)``, d² the distance of :func:`joint_z` (same
+    ``curves_at``, ``z_grid``, ``scatter``, ``p``, ``fitted`` (n, 3), ``cov``; C scaled by
+    d²_min/2 where the curves do not hold the spot, d²_min the least in the window); the width
+    is the |plane − z| that holds :data:`~latentz.calibration.errors.ONE_SIGMA` of the weight
+    (:func:`~latentz.calibration.errors.covering_width`). Where the shape hardly changes
+    with z, the curvature of d² gives a σ of microns while the spot lies in its window
+    whatever its shape: this width is then the window's, weighted by how well each plane fits
+    all three of wx, wy, ρ. It resolves nothing finer than the planes' step. NaN where z is
+    or no plane in the window has a finite d²."""
+    from latentz.calibration.errors import covering_width
+
+    out = np.full(len(p), np.nan)
+    for start in range(0, len(p), _CHUNK):
+        part = slice(start, start + _CHUNK)
+        grid, zz = z_grid[p[part]], z[part]
+        weight = _weights(cov[part] + _diagonal(scatter[p[part]]))
+        d2 = _plane_distances(curves_at, grid, p[part], fitted[part, None, :], weight)
+        with np.errstate(invalid="ignore"):
+            inside = (grid >= window[part, :1]) & (grid <= window[part, 1:]) & np.isfinite(d2)
+        best = np.min(np.where(inside, d2, np.inf), axis=1)
+        with np.errstate(invalid="ignore"):
+            likelihood = np.where(inside, np.exp(-0.5 * (d2 - best[:, None])
+                                                 / _held_scale(best)[:, None]), 0.0)  # fmt: skip
+        total = likelihood.sum(axis=1)
+        found = np.isfinite(zz) & (total > 0)
+        spread = np.abs(grid[found] - zz[found, None])
+        share = likelihood[found] / total[found, None]
+        out[start + np.flatnonzero(found)] = covering_width(spread, share)
+    return out
 
 
 def _parabola_vertex(grid: np.ndarray, d2: np.ndarray, k: np.ndarray) -> np.ndarray:
