@@ -275,28 +275,48 @@ def _is_peak(band, i, j, v, radius, h):
     return True
 
 
+#: Columns per span of `_row_maxima`: the spans holding no pixel above the floor are skipped.
+_SPAN = 256
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _count_above(line, row_floor, gain_cols):
+    """How many pixels of ``line`` lie above ``row_floor * gain_cols`` (vectorises)."""
+    above = 0
+    for j in range(line.shape[0]):
+        above += line[j] > row_floor * gain_cols[j]
+    return above
+
+
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _row_maxima(band, i, radius, h, row_floor, gain_cols, rows, cols, values, found):
     """Append the maxima of band-passed row ``i`` above ``row_floor * gain_cols[j]`` (`_is_peak`)
     to ``rows, cols, values`` from index ``found`` (as far as they have room); return the new
-    count. The row's pixels above are counted first, which vectorises: most rows hold none
-    (counting spans of 64 columns instead, so as to skip the empty ones, cost 2 ms more per
-    2048 x 2048 frame)."""
+    count. The row's pixels above are counted first, which vectorises: most rows hold none. In a
+    row that holds some, each span of `_SPAN` columns is counted the same way and only the spans
+    with pixels above are compared pixel by pixel, up to the last pixel above (a row of noise
+    holds one or two: 1.6 against 0.3 ms per 2048 x 2048 frame for comparing whole rows)."""
     w = band.shape[1]
     line = band[i % band.shape[0]]
-    above = 0
-    for j in range(w):
-        above += line[j] > row_floor * gain_cols[j]
-    if above == 0:
-        return found
-    for j in range(w):
-        v = line[j]
-        if v > row_floor * gain_cols[j] and _is_peak(band, i, j, v, radius, h):
-            if found < len(rows):
-                rows[found] = i
-                cols[found] = j
-                values[found] = v
-            found += 1
+    above = _count_above(line, row_floor, gain_cols)
+    for start in range(0, w, _SPAN):
+        if above == 0:
+            break
+        stop = min(start + _SPAN, w)
+        span = line[start:stop]
+        gains = gain_cols[start:stop]
+        here = _count_above(span, row_floor, gains)
+        if here == 0:
+            continue
+        above -= here
+        for j in range(stop - start):
+            v = span[j]
+            if v > row_floor * gains[j] and _is_peak(band, i, start + j, v, radius, h):
+                if found < len(rows):
+                    rows[found] = i
+                    cols[found] = start + j
+                    values[found] = v
+                found += 1
     return found
 
 
