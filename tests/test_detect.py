@@ -154,6 +154,20 @@ def test_kernels_match_their_numpy_twin():
         _assert_frame_matches_the_twin(found, t, frame)
 
 
+def test_maxima_on_the_kernels_span_boundaries_match_the_twin():
+    # the kernels compare pixel by pixel only the spans of `_SPAN` columns holding pixels above
+    # the floor: spots whose maxima fall either side of a span's first column
+    from latentz.detect._kernels import _SPAN
+
+    xs = [_SPAN - 1.3, _SPAN - 0.6, _SPAN + 0.2, 2 * _SPAN - 0.5, 2 * _SPAN + 0.4, 2 * _SPAN + 8]
+    points = [(x, 20.0 + 25.0 * k) for k, x in enumerate(xs)]
+    frames = np.stack([_spot_frame(points, shape=(180, 2 * _SPAN + 13), seed=s) for s in range(3)])
+    found = detect_arrays(frames, roi_size=7)
+    assert np.isin([_SPAN - 1, _SPAN, 2 * _SPAN - 1, 2 * _SPAN], found.col).all()
+    for t, frame in enumerate(frames):
+        _assert_frame_matches_the_twin(found, t, frame)
+
+
 def test_kernels_read_adu_frames_as_the_twin_reads_their_photoelectrons():
     # uint16 ADU through a camera with a flatfield, converted where the kernels read each
     # pixel; 530 x 517 px frames: a strided noise sample (every 2nd pixel), partial blocks and
