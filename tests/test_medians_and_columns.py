@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from latentz._shared.columns import with_columns
-from latentz._shared.medians import row_medians, row_medians_and_mads
+from latentz._shared.medians import _SAMPLE, row_medians, row_medians_and_mads
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 64, 65, 4096, 4097])
@@ -37,7 +37,9 @@ def test_medians_and_deviations_of_rows_with_nan_are_those_of_two_sorts(row):
     assert np.array_equal(mads, row_medians(deviations), equal_nan=True)
 
 
-@pytest.mark.parametrize("kind", ["noise sample", "sorted", "strided outliers", "cauchy", "ties"])
+@pytest.mark.parametrize(
+    "kind", ["noise sample", "sorted", "strided outliers", "grid", "cauchy", "ties"]
+)
 def test_selected_medians_and_deviations_of_long_rows_are_numpys(kind):
     """Rows long enough for `row_medians_and_mads`' narrowing steps, including rows whose strided
     sample misleads them (the steps fall back to sorting) and rows of a few distinct values."""
@@ -48,9 +50,10 @@ def test_selected_medians_and_deviations_of_long_rows_are_numpys(kind):
         row[rng.integers(0, n, 300)] = rng.uniform(50, 5000, 300)  # spots in a band-passed frame
     elif kind == "sorted":
         row = np.sort(row)
-    elif kind == "strided outliers":  # every sampled value far above the rest
-        row[:: n // 256] = 1e6
-        row[n // 256 // 2 :: n // 256] = -1e6
+    elif kind == "strided outliers":  # the first step's sample far above the rest
+        row[:: (n // _SAMPLE) | 1] = 1e6
+    elif kind == "grid":  # a 2-D sample whose first column alone is wide, as a frame's edge
+        row.reshape(256, 256)[:, 0] *= 30.0
     elif kind == "cauchy":
         row = rng.standard_cauchy(n)
     else:

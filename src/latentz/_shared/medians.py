@@ -57,17 +57,18 @@ _MARGIN = 24
 def _rank_pair(values, k, work):
     """The ``k``-th and ``k + 1``-th smallest (0-based; the second clipped to the last) of
     ``values`` (float64, no NaN, ``k < len(values)``), as a sort would read them. Each step sorts
-    a strided sample of the candidates, keeps those between the sample's values `_MARGIN` ranks
-    either side of the wanted rank's place in it (about a fifth), and counts those below, until
-    few are left, which are sorted; a step whose bounds miss the ranks (rarely: by chance or on
-    ties) sorts its candidates. ``work`` (2, len(values)) is scratch."""
+    a sample of the candidates at an odd stride, keeps those between the sample's values
+    `_MARGIN` ranks either side of the wanted rank's place in it (about a fifth), and counts those
+    below, until few are left, which are sorted; a step whose bounds miss the ranks (rarely: by
+    chance or on ties) sorts its candidates. ``work`` (2, len(values)) is scratch."""
     candidates = values
     side = 0
     while True:
         n = len(candidates)
         second = min(k + 1, n - 1)
         if n > _SMALL:
-            sample = np.sort(candidates[:: n // _SAMPLE])
+            # an odd step: a grid's sample (2-D, rows of a power of 2) read whole, not one column
+            sample = np.sort(candidates[:: (n // _SAMPLE) | 1])
             place = k * len(sample) // n
             lo = sample[max(place - _MARGIN, 0)]
             hi = sample[min(place + _MARGIN, len(sample) - 1)]
