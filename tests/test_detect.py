@@ -154,6 +154,21 @@ def test_kernels_match_their_numpy_twin():
         _assert_frame_matches_the_twin(found, t, frame)
 
 
+@pytest.mark.parametrize("factor", [3, 4, 5])
+@pytest.mark.parametrize("width", [2048, 2050])
+def test_block_means_of_a_row_are_the_twins(factor, width):
+    # the kernels' block means (the default factor, 4, compiled as a constant; others not)
+    # against the NumPy twin's, whole blocks and a partial one at the row's end
+    from latentz.detect import _kernels
+    from latentz.detect.api import _block_means
+
+    rows = 3
+    acc = np.random.default_rng(factor).uniform(0, 300, width).astype(np.float32)
+    out = np.empty(-(-width // factor), np.float32)
+    _kernels._block_row_means(acc, factor, rows, out)
+    np.testing.assert_allclose(out, _block_means(acc[None] / rows, factor)[0], rtol=1e-6)
+
+
 def test_maxima_on_the_kernels_span_boundaries_match_the_twin():
     # the kernels compare pixel by pixel only the spans of `_SPAN` columns holding pixels above
     # the floor: spots whose maxima fall either side of a span's first column
