@@ -16,8 +16,9 @@ from cache, and filtered along the block row into a ring of block rows; `_backgr
 that ring vertically when a band row needs the block row); each band-passed row (the ring
 filtered vertically, minus the background read back bilinearly) goes into a second ring of
 ``2 d + 1`` rows, ``d`` the maxima's radius; each row whose ``d`` rows below are ready is tested
-(`_row_maxima`: the pixels above the floor counted first, which vectorises, then compared with
-their neighbours). Memory is a few rows per task; the band-passed frame is never stored.
+(`_row_maxima`: the pixels above the floor counted first, which vectorises; in a row holding
+some, only the spans of `_SPAN` columns that do are compared with their neighbours). Memory is
+a few rows per task; the band-passed frame is never stored.
 
 The threshold is not known while the rows pass: the pass writes the band-passed frame at the
 strided pixels of :func:`latentz.detect.noise_level` (their robust spread is taken afterwards,
