@@ -169,6 +169,24 @@ def test_block_means_of_a_row_are_the_twins(factor, width):
     np.testing.assert_allclose(out, _block_means(acc[None] / rows, factor)[0], rtol=1e-6)
 
 
+@pytest.mark.parametrize("factor", [3, 4, 5])
+@pytest.mark.parametrize("width", [5, 261, 2048, 2050])
+def test_upsampled_block_rows_are_the_twins(factor, width):
+    # the kernels' bilinear reading of a block row (runs of 4 pixels for the default factor, a
+    # gather per pixel for others) against the NumPy twin's, at both edges and partial blocks
+    from latentz.detect import _kernels
+    from latentz.detect.api import _upsampled
+
+    small = np.random.default_rng(width).uniform(0, 100, -(-width // factor)).astype(np.float32)
+    index0, index1 = np.empty(width, np.int64), np.empty(width, np.int64)
+    frac = np.empty(width, np.float32)
+    _kernels._interp_axis(width, factor, len(small), index0, index1, frac)
+    out = np.empty(width, np.float32)
+    _kernels._upsample_row(small, factor, index0, index1, frac, out)
+    expected = _upsampled(small[None].astype(float), (1, width), factor)[0]
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+
+
 def test_maxima_on_the_kernels_span_boundaries_match_the_twin():
     # the kernels compare pixel by pixel only the spans of `_SPAN` columns holding pixels above
     # the floor: spots whose maxima fall either side of a span's first column

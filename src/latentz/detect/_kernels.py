@@ -166,9 +166,33 @@ def _interp_axis(n, factor, n_small, index0, index1, frac):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _upsample_row(small, index0, index1, frac, out):
-    """``out``: a row of block means read bilinearly at each pixel (`_interp_axis`)."""
-    for j in range(out.shape[0]):
+def _upsample_row(small, factor, index0, index1, frac, out):
+    """``out``: a row of block means of ``factor`` px read bilinearly at each pixel
+    (`_interp_axis`). With the default sigma's factor, 4, the pixels between the centres of
+    blocks ``c`` and ``c + 1`` (``4 c + 2`` to ``4 c + 5``: exact in binary) are read as one run
+    from the two means, without gathering them per pixel (0.35 against 0.75 ms per 2048 x 2048
+    frame); other factors gather (their block positions, rounded, may shift a pixel between
+    runs)."""
+    if factor != 4:
+        _upsample_span(small, index0, index1, frac, out, 0, out.shape[0])
+        return
+    w = out.shape[0]
+    inner = max(min(small.shape[0] - 1, (w - 2) // 4), 0)  # whole runs of 4 pixels
+    _upsample_span(small, index0, index1, frac, out, 0, min(2, w))
+    for c in range(inner):
+        a = small[c]
+        d = small[c + 1] - a
+        run = out[4 * c + 2 : 4 * c + 6]
+        weights = frac[4 * c + 2 : 4 * c + 6]
+        for m in range(4):
+            run[m] = a + weights[m] * d
+    _upsample_span(small, index0, index1, frac, out, min(4 * inner + 2, w), w)
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _upsample_span(small, index0, index1, frac, out, start, stop):
+    """`_upsample_row` of pixels ``start:stop``, gathering each pixel's two block means."""
+    for j in range(start, stop):
         a = small[index0[j]]
         out[j] = a + frac[j] * (small[index1[j]] - a)
 
@@ -414,7 +438,7 @@ def detect_frames(
                                                made, wide_ring, acc, wide_pad, block)  # fmt: skip
                         if a <= big * factor < b:  # each block row written by one task
                             background[t, big] = block
-                        _upsample_row(block, col0, col1, colf, upsampled[big % 2])
+                        _upsample_row(block, factor, col0, col1, colf, upsampled[big % 2])
                     last = r0
                 line = band[ready % band_n]
                 _band_row(ring, weights, ready, r, upsampled[r0 % 2],
