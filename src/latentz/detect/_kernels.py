@@ -331,7 +331,7 @@ def _row_maxima(band, i, radius, h, row_floor, gain_cols, rows, cols, values, fo
     count. The row's pixels above are counted first, which vectorises: most rows hold none. In a
     row that holds some, each span of `_SPAN` columns is counted the same way and only the spans
     with pixels above are compared pixel by pixel, up to the last pixel above (a row of noise
-    holds one or two: 1.6 against 0.3 ms per 2048 x 2048 frame for comparing whole rows)."""
+    holds one or two: 1.1 against 1.7 ms per 2048 x 2048 frame at 30 spots for whole rows)."""
     w = band.shape[1]
     line = band[i % band.shape[0]]
     above = _count_above(line, row_floor, gain_cols)
