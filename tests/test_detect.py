@@ -154,6 +154,53 @@ def test_kernels_match_their_numpy_twin():
         _assert_frame_matches_the_twin(found, t, frame)
 
 
+@pytest.mark.parametrize("factor", [3, 4, 5])
+@pytest.mark.parametrize("width", [2048, 2050])
+def test_block_means_of_a_row_are_the_twins(factor, width):
+    # the kernels' block means (the default factor, 4, compiled as a constant; others not)
+    # against the NumPy twin's, whole blocks and a partial one at the row's end
+    from latentz.detect import _kernels
+    from latentz.detect.api import _block_means
+
+    rows = 3
+    acc = np.random.default_rng(factor).uniform(0, 300, width).astype(np.float32)
+    out = np.empty(-(-width // factor), np.float32)
+    _kernels._block_row_means(acc, factor, rows, out)
+    np.testing.assert_allclose(out, _block_means(acc[None] / rows, factor)[0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("factor", [3, 4, 5])
+@pytest.mark.parametrize("width", [5, 261, 2048, 2050])
+def test_upsampled_block_rows_are_the_twins(factor, width):
+    # the kernels' bilinear reading of a block row (runs of 4 pixels for the default factor, a
+    # gather per pixel for others) against the NumPy twin's, at both edges and partial blocks
+    from latentz.detect import _kernels
+    from latentz.detect.api import _upsampled
+
+    small = np.random.default_rng(width).uniform(0, 100, -(-width // factor)).astype(np.float32)
+    index0, index1 = np.empty(width, np.int64), np.empty(width, np.int64)
+    frac = np.empty(width, np.float32)
+    _kernels._interp_axis(width, factor, len(small), index0, index1, frac)
+    out = np.empty(width, np.float32)
+    _kernels._upsample_row(small, factor, index0, index1, frac, out)
+    expected = _upsampled(small[None].astype(float), (1, width), factor)[0]
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+
+
+def test_maxima_on_the_kernels_span_boundaries_match_the_twin():
+    # the kernels compare pixel by pixel only the spans of `_SPAN` columns holding pixels above
+    # the floor: spots whose maxima fall either side of a span's first column
+    from latentz.detect._kernels import _SPAN
+
+    xs = [_SPAN - 1.3, _SPAN - 0.6, _SPAN + 0.2, 2 * _SPAN - 0.5, 2 * _SPAN + 0.4, 2 * _SPAN + 8]
+    points = [(x, 20.0 + 25.0 * k) for k, x in enumerate(xs)]
+    frames = np.stack([_spot_frame(points, shape=(180, 2 * _SPAN + 13), seed=s) for s in range(3)])
+    found = detect_arrays(frames, roi_size=7)
+    assert np.isin([_SPAN - 1, _SPAN, 2 * _SPAN - 1, 2 * _SPAN], found.col).all()
+    for t, frame in enumerate(frames):
+        _assert_frame_matches_the_twin(found, t, frame)
+
+
 def test_kernels_read_adu_frames_as_the_twin_reads_their_photoelectrons():
     # uint16 ADU through a camera with a flatfield, converted where the kernels read each
     # pixel; 530 x 517 px frames: a strided noise sample (every 2nd pixel), partial blocks and

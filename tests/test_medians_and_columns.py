@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from latentz._shared.columns import with_columns
-from latentz._shared.medians import row_medians, row_medians_and_mads
+from latentz._shared.medians import _SAMPLE, row_medians, row_medians_and_mads
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 64, 65, 4096, 4097])
@@ -35,6 +35,35 @@ def test_medians_and_deviations_of_rows_with_nan_are_those_of_two_sorts(row):
     assert np.array_equal(centre, expected, equal_nan=True)
     deviations = np.abs(values.astype(np.float64) - expected[:, None])
     assert np.array_equal(mads, row_medians(deviations), equal_nan=True)
+
+
+@pytest.mark.parametrize(
+    "kind", ["noise sample", "sorted", "strided outliers", "grid", "cauchy", "ties"]
+)
+def test_selected_medians_and_deviations_of_long_rows_are_numpys(kind):
+    """Rows long enough for `row_medians_and_mads`' narrowing steps, including rows whose strided
+    sample misleads them (the steps fall back to sorting) and rows of a few distinct values."""
+    rng = np.random.default_rng(7)
+    n = 65536
+    row = rng.normal(0.0, 3.0, n)
+    if kind == "noise sample":
+        row[rng.integers(0, n, 300)] = rng.uniform(50, 5000, 300)  # spots in a band-passed frame
+    elif kind == "sorted":
+        row = np.sort(row)
+    elif kind == "strided outliers":  # the first step's sample far above the rest
+        row[:: (n // _SAMPLE) | 1] = 1e6
+    elif kind == "grid":  # a 2-D sample whose first column alone is wide, as a frame's edge
+        row.reshape(256, 256)[:, 0] *= 30.0
+    elif kind == "cauchy":
+        row = rng.standard_cauchy(n)
+    else:
+        row = rng.integers(0, 4, n).astype(np.float64)
+    for width in (n, n - 1):  # even and odd counts
+        values = np.stack([row, row[::-1]]).astype(np.float32)[:, :width]
+        centre, mads = row_medians_and_mads(values)
+        assert np.array_equal(centre, [np.median(r.astype(np.float64)) for r in values])
+        deviations = np.abs(values.astype(np.float64) - centre[:, None])
+        assert np.array_equal(mads, [np.median(r) for r in deviations])
 
 
 def test_with_columns_replaces_in_place_appends_in_order_and_keeps_index_and_attrs():
