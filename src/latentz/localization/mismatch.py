@@ -53,7 +53,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz._shared.sanity import warn
-from latentz.localization.quality import curve_spread
+from latentz.localization.quality import curve_share2
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -79,8 +79,10 @@ Z_STEP_NM = 10.0
 #: Most χ² one spot adds to a turn's sum: χ²(2)'s 99.9 % point, so that a spot no turn fits
 #: (a neighbour's light) does not choose the turn.
 AXIS_CHI2_CAP = 13.8
-#: Most spots the axis is measured on (drawn at random from larger tables).
-AXIS_SPOTS = 1000
+#: Most spots the axis is measured on (drawn at random from larger tables): more than the
+#: 200–300 checked spots of each table of benchmarks/bench_wrong_calibration.py, so that the
+#: hits and false alarms measured there hold, while the check costs at most about 0.3 s of CPU.
+AXIS_SPOTS = 400
 #: The spots' log width ratio (at the calibration's brightness) above which they are wider than
 #: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
 #: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
@@ -147,17 +149,24 @@ def _checked(table: pd.DataFrame) -> np.ndarray:
     return ok & ~table["duplicate"].to_numpy(bool)
 
 
-def _rotated(
-    wx: np.ndarray, wy: np.ndarray, rho: np.ndarray, phi: float
+def _moments(
+    wx: np.ndarray, wy: np.ndarray, rho: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Shapes (wx, wy in px, ρ) of the images (wx, wy, ρ) turned by ``phi`` (rad)."""
-    c, s = np.cos(phi), np.sin(phi)
-    xx, yy, xy = wx**2, wy**2, rho * wx * wy
-    new_xx = c * c * xx - 2 * c * s * xy + s * s * yy
-    new_yy = s * s * xx + 2 * c * s * xy + c * c * yy
-    new_xy = c * s * (xx - yy) + (c * c - s * s) * xy
-    new_wx, new_wy = np.sqrt(new_xx), np.sqrt(new_yy)
-    return new_wx, new_wy, new_xy / (new_wx * new_wy)
+    """Second moments of shapes (wx, wy in px, ρ) as (xx + yy) / 2, (xx − yy) / 2 and xy (px²),
+    from which :func:`_turned` turns them."""
+    xx, yy = wx**2, wy**2
+    return (xx + yy) / 2, (xx - yy) / 2, rho * wx * wy
+
+
+def _turned(
+    mean: np.ndarray, half: np.ndarray, xy: np.ndarray, phi: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shapes (wx, wy in px, ρ) of images of :func:`_moments` ``mean``, ``half``, ``xy`` turned
+    by ``phi`` (rad); turned by ``phi`` + π/2 they are (wy, wx, −ρ)."""
+    c, s = np.cos(2 * phi), np.sin(2 * phi)
+    swing = half * c - xy * s
+    wx, wy = np.sqrt(mean + swing), np.sqrt(mean - swing)
+    return wx, wy, (half * s + xy * c) / (wx * wy)
 
 
 def _turn_chi2(spots: pd.DataFrame, cal: Calibration) -> np.ndarray:
@@ -173,16 +182,19 @@ def _turn_chi2(spots: pd.DataFrame, cal: Calibration) -> np.ndarray:
         name: v.reshape(at.shape) for name, v in cal.curves_at(particle.ravel(), at.ravel()).items()
     }
     outside = (at < window[:, :1]) | (at > window[:, 1:])
-    values = _carried_shapes(spots, cal)
-    own = [spots[f"{n}_err"].to_numpy(float)[:, None] if f"{n}_err" in spots else 0.0
-           for n in _SHAPE]  # fmt: skip
+    values = [v[:, None] for v in _carried_shapes(spots, cal)]
+    fixed = [np.square(spots[f"{n}_err"].to_numpy(float)[:, None] if f"{n}_err" in spots else 0.0)
+             + curves[f"{n}_scatter"] ** 2 for n in _SHAPE]  # fmt: skip
+    moments = _moments(np.abs(curves["wx"]), np.abs(curves["wy"]), curves["rho"])
+    half = TURNS.size // 2  # TURNS[k + half] is TURNS[k] + 90°: the same shapes, wx and wy swapped
     chi2 = np.empty((TURNS.size, len(spots)))
-    for k, phi in enumerate(TURNS):
-        wx, wy, rho = _rotated(np.abs(curves["wx"]), np.abs(curves["wy"]), curves["rho"], phi)
-        turned = {**curves, "wx": wx, "wy": wy, "rho": rho}
-        total = sum(((v[:, None] - turned[n]) / curve_spread(n, e, turned)) ** 2
-                    for n, v, e in zip(_SHAPE, values, own, strict=True))  # fmt: skip
-        chi2[k] = np.min(np.where(outside, np.inf, total), axis=1)
+    for k in range(half):
+        wx, wy, rho = _turned(*moments, TURNS[k])
+        for row, shapes in ((k, (wx, wy, rho)), (k + half, (wy, wx, -rho))):
+            turned = dict(zip(_SHAPE, shapes, strict=True))
+            total = sum((v - turned[n]) ** 2 / (f + curve_share2(n, turned))
+                        for n, v, f in zip(_SHAPE, values, fixed, strict=True))  # fmt: skip
+            chi2[row] = np.min(np.where(outside, np.inf, total), axis=1)
     return np.minimum(chi2, AXIS_CHI2_CAP)
 
 

@@ -56,6 +56,7 @@ __all__ = [
     "assess",
     "calibration_flags",
     "consistency",
+    "curve_share2",
     "curve_spread",
     "summary",
     "good_rows",
@@ -141,9 +142,14 @@ def curve_spread(name: str, own: np.ndarray | float, curves: dict[str, np.ndarra
     """σ of a spot's ``name`` (wx, wy in px, or ρ) about calibration ``curves``
     (:meth:`~latentz.calibration.Calibration.curves_at`): its own fit error ``own``, the curve's
     scatter and :data:`CURVE_SCATTER` of the curve's value (of 1 for ρ), in quadrature."""
+    return np.sqrt(np.square(own) + curves[f"{name}_scatter"] ** 2 + curve_share2(name, curves))
+
+
+def curve_share2(name: str, curves: dict[str, np.ndarray]) -> np.ndarray | float:
+    """The square of :data:`CURVE_SCATTER` of ``curves``' ``name`` (of 1 for ρ): the part of
+    :func:`curve_spread` that follows the curve's value."""
     scale = np.abs(curves[name]) if name != "rho" else 1.0
-    scatter = curves[f"{name}_scatter"]
-    return np.sqrt(np.square(own) + scatter**2 + (CURVE_SCATTER * scale) ** 2)
+    return (CURVE_SCATTER * scale) ** 2
 
 
 def consistency(spots: pd.DataFrame, cal: Calibration) -> dict[str, np.ndarray]:
