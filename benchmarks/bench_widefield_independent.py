@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz._shared.atomic import write_bytes_atomic
 from latentz.calibration import calibrate, calibrate_traces
 from latentz.calibration.result import _track_reference
 from latentz.calibration.shape import shape_value, uses_amplitude
@@ -184,8 +185,7 @@ def load_study(size: str, cache: Path | None, seed: int = 0,
             return pickle.load(f)
     data = make_data(size, seed=seed, test_photons=test_photons)
     if cache is not None:
-        with cache.open("wb") as f:
-            pickle.dump(data, f)
+        write_bytes_atomic(cache, pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL))
     return data
 
 
@@ -415,6 +415,8 @@ def main() -> None:
     test_photons = tuple(float(v) for v in args.test_photons.split(","))
     if len(test_photons) != 2 or not 0 < test_photons[0] <= test_photons[1]:
         parser.error(f"--test-photons: expected LO,HI with 0 < LO <= HI, got {args.test_photons!r}")
+    if args.cache is not None and not args.cache.parent.is_dir():
+        parser.error(f"--cache: the folder {args.cache.parent} does not exist; create it first")
     warnings.simplefilter("ignore", UserWarning)
     start = time.perf_counter()
     data = load_study(args.size, args.cache, test_photons=test_photons)
