@@ -70,15 +70,22 @@ def remove_planes(errors: pd.DataFrame) -> pd.DataFrame:
     """``errors`` with the least-squares plane in (x, y) of each of ``err_x_nm``, ``err_y_nm``,
     ``err_z_nm`` removed, fitted over the finite in-range rows."""
     out = errors.copy()
-    design = np.column_stack([np.ones(len(out)), out["x"].to_numpy(), out["y"].to_numpy()])
     for axis in "xyz":
         column = f"err_{axis}_nm"
         values = out[column].to_numpy(float)
-        use = out["in_range"].to_numpy(bool) & np.isfinite(values)
+        use, design = _plane_rows(errors, axis)
         if use.sum() >= 3:
             coef = np.linalg.lstsq(design[use], values[use], rcond=None)[0]
             out[column] = values - design @ coef
     return out
+
+
+def _plane_rows(errors: pd.DataFrame, axis: str) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``errors`` that ``axis``'s plane is fitted over (in range, its error finite;
+    (rows,) bool) and the plane's design (rows, 3): 1, x, y (px)."""
+    use = errors["in_range"].to_numpy(bool) & np.isfinite(errors[f"err_{axis}_nm"].to_numpy(float))
+    x, y = errors["x"].to_numpy(), errors["y"].to_numpy()
+    return use, np.column_stack([np.ones(len(errors)), x, y])
 
 
 def coverage_interval(errors: pd.DataFrame, axis: str, shared_nm: float, *,
@@ -94,13 +101,12 @@ def coverage_interval(errors: pd.DataFrame, axis: str, shared_nm: float, *,
     emitters scatters in coverage far more than its spots' count says, and the plane fitted to
     them takes a share of that part off: with 24 spots of 6 emitters the coverage of right
     errors averages well above 68 %."""
-    used = errors["in_range"].to_numpy(bool) & np.isfinite(errors[f"err_{axis}_nm"].to_numpy())
-    table = errors[used]
+    used, design = _plane_rows(errors, axis)
+    table, design = errors[used], design[used]
     sigma = table[f"{axis}_err_nm"].to_numpy(float)
     shared = np.minimum(shared_nm, sigma)
     own = np.sqrt(sigma**2 - shared**2)
     emitter = np.unique(table["emitter"].to_numpy(), return_inverse=True)[1].ravel()
-    design = np.column_stack([np.ones(len(table)), table["x"].to_numpy(), table["y"].to_numpy()])
     rng = np.random.default_rng(seed)
     drawn = (shared * rng.standard_normal((draws, emitter.max() + 1))[:, emitter]
              + own * rng.standard_normal((draws, len(table))))  # fmt: skip
