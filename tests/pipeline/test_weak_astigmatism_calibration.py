@@ -54,7 +54,7 @@ def test_good_keeps_the_correct_located_spots_of_a_right_calibration():
     """Here z is measured poorly (σ_z before the crowding factor 145 nm median, up to 310 nm),
     but a located spot's z cannot leave its calibrated range, which bounds its error: each spot
     is judged by its chance of lying beyond the challenge's 500 nm (``z_far_p``), not by σ_z
-    alone. Correct is the simulation's truth (the challenge's matching). 96.5 % of the ~200
+    alone. Correct is the simulation's truth (the challenge's matching). 98 % of the ~200
     correct located spots are good."""
     locs, _ = _localized("right")
     located = (locs["correct"] & locs["in_range"]).to_numpy(bool)
