@@ -18,10 +18,10 @@ Independent parts, added in quadrature (three in z, four laterally):
 3. **the field model's error**: how wrong the model of the field is between calibration
    particles, measured by cross-validation (:mod:`latentz.calibration.crossval`): in bins of z,
    the held-out squared errors of the chosen field model as a line ``a² + b² d²`` in the squared
-   distance d to the nearest particle, evaluated at the spot's own distance (laterally no nearer
-   than the distances held out, less the held-out particle's own z noise carried through
-   its Δx'(z), Δy'(z), which part 1 carries for a spot, and scaled to cover 68 % of the
-   held-out errors, which are heavy-tailed); in z, ``a²`` holds the particles'
+   distance d to the nearest particle, evaluated at the spot's own distance and scaled to cover
+   68 % of the held-out errors, which are heavy-tailed (laterally no nearer than the distances
+   held out, less the held-out particle's own z noise carried through its Δx'(z), Δy'(z),
+   which part 1 carries for a spot); in z, ``a²`` holds the particles'
    own heights, which a held-out error holds twice and a spot near one particle once
    (:func:`field_sigma`). In z it is no smaller than the same line measured on held-out
    particles seen as emitters of the spot's brightness and localized by their 1st-4th
@@ -63,8 +63,8 @@ __all__ = [
 NOISE_WINDOW = 12
 #: Held-out planes per z bin; sparser bins are merged with their neighbours.
 MIN_PER_BIN = 30
-#: Share of a normal error within 1σ: laterally, the field line is scaled so that the held-out
-#: errors are covered as often (:func:`_covering_scale`).
+#: Share of a normal error within 1σ: the field line is scaled so that the held-out errors are
+#: covered as often (:func:`_covering_scale`).
 ONE_SIGMA = 0.6827
 #: Field models that smooth over the particles rather than pass through them (:func:`field_sigma`).
 SMOOTHING = ("zernike",)
@@ -124,10 +124,11 @@ def field_sigma(table: pd.DataFrame, model: str, axis: str, z_nm: np.ndarray,
     elsewhere, subtracted once (laterally: the held-out particle's own z noise carried through
     its Δx'(z), Δy'(z), which a spot's own σ_z stands for).
 
-    Laterally the line of each bin is then scaled so that, with those parts, it covers
-    :data:`ONE_SIGMA` of the bin's held-out errors (:func:`_covering_scale`): they are
-    heavy-tailed (a few particles and planes hold most of the mean square), and a normal of
-    their mean square spans most of the others many times over.
+    The line of each bin is then scaled so that, with those parts, it covers :data:`ONE_SIGMA`
+    of the bin's held-out errors (:func:`_covering_scale`): they are heavy-tailed (a few
+    particles and planes hold most of the mean square), and a normal of their mean square spans
+    most of the others many times over. In z this holds on the validation family's draws and
+    the independent validation microscope, whose test emitters' errors have such tails too.
     """
     line = field_line(table, model, axis, bin_nm=bin_nm, model_nm=model_nm, noise_nm=noise_nm)
     return line.sigma(z_nm, distance_px)
@@ -185,8 +186,7 @@ def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 25
             first = end
     if first < zz.size:  # a short last run joins the last bin
         bins[-1] = np.flatnonzero(zz >= centres[-1])
-    lateral = axis != "z"
-    values = [_bin_line(err2[b], known2[b], dist2[b], covering=lateral) for b in bins]
+    values = [_bin_line(err2[b], known2[b], dist2[b]) for b in bins]
     floor2, slope2 = np.asarray(values).T
     # in z, the spot's neighbours' heights, not the held-out particle's too (see field_sigma)
     share = 0.5 if model not in SMOOTHING and axis == "z" else 1.0
@@ -195,16 +195,12 @@ def field_line(table: pd.DataFrame, model: str, axis: str, *, bin_nm: float = 25
     return FieldLine(np.asarray(centres), floor2, slope2, share, least_d2)
 
 
-def _bin_line(err2: np.ndarray, known2: np.ndarray, dist2: np.ndarray, *,
-              covering: bool) -> tuple[float, float]:  # fmt: skip
+def _bin_line(err2: np.ndarray, known2: np.ndarray, dist2: np.ndarray) -> tuple[float, float]:
     """``(a², b²)`` of one z bin's held-out squared errors ``err2`` less the parts ``known2``
     that a spot's σ holds elsewhere, against the squared distances ``dist2``
-    (:func:`_floor_and_slope`). With ``covering``, scaled by the k² at which
-    ``k²(a² + b²d²) + known2`` covers :data:`ONE_SIGMA` of the squared errors, as a spot's σ
-    should (:func:`_covering_scale`)."""
+    (:func:`_floor_and_slope`), scaled by the k² at which ``k²(a² + b²d²) + known2`` covers
+    :data:`ONE_SIGMA` of the squared errors, as a spot's σ should (:func:`_covering_scale`)."""
     floor2, slope2 = _floor_and_slope(err2 - known2, dist2)
-    if not covering:
-        return floor2, slope2
     k2 = _covering_scale(err2, known2, floor2 + slope2 * dist2)
     return k2 * floor2, k2 * slope2
 
