@@ -1137,7 +1137,7 @@ class Calibration:
         for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
             err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
             if reference:
-                err = combine(err, np.full(err.shape, self.reference_sigma_nm(axis)))
+                err = combine(err, self.reference_sigma_nm(axis))
             out[f"{axis}_nm"] = place
             out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
         out["z_nm"] = z
