@@ -50,12 +50,16 @@ def bead_calibration(
     *,
     field_shape: tuple[int, int] = (128, 128),
     roi_size: int | None = None,
+    z_nm: np.ndarray | None = None,
 ) -> Calibration:
     """``calibrate`` with defaults (or the given ``roi_size``, px) on six 100 nm beads (20,000
-    photons, background 20) of ``microscope``, imaged from −1 to +1 µm in 25 nm steps."""
+    photons, background 20) of ``microscope``, imaged at the stage positions ``z_nm`` (nm; from
+    −1 to +1 µm in 25 nm steps if None)."""
     optics, aberrations, camera = microscope
+    if z_nm is None:
+        z_nm = np.arange(-1000.0, 1000.1, 25.0)
     data = calibration_dataset(
-        n_particles=6, z_nm=np.arange(-1000.0, 1000.1, 25.0), n_stage_positions=1,
+        n_particles=6, z_nm=z_nm, n_stage_positions=1,
         frame_shape=field_shape, particle_diameter_nm=100.0, diameter_sd_nm=5.0, photons=2e4,
         background=20.0, optics=optics, aberrations=aberrations, camera=camera,
         min_spacing_px=35.0, tilt_mrad=0.0, seed=seed,
