@@ -90,10 +90,10 @@ def test_molecules_dimmer_than_the_beads_are_localized_with_a_shape_that_ignores
 
     from scipy.spatial import cKDTree
 
-    from latentz.calibration import calibrate, calibrate_traces
+    from latentz.calibration import calibrate_traces
     from latentz.localization import localize
-    from latentz.simulate import calibration_dataset
     from latentz.simulate.molecules import molecule_frames, place_molecules, random_microscope
+    from latentz.validation.molecules import bead_calibration
 
     rng = np.random.default_rng(2)
     scope = random_microscope(rng, astigmatism_nm=(8.0, 20.0))
@@ -101,13 +101,7 @@ def test_molecules_dimmer_than_the_beads_are_localized_with_a_shape_that_ignores
     camera = dataclasses.replace(scope.camera, pixel_size_nm=65.0)
     scope = scope._replace(optics=optics, camera=camera)
     field = (128, 128)
-    beads = calibration_dataset(
-        n_particles=6, z_nm=np.arange(-400.0, 400.1, 10.0), n_stage_positions=1,
-        frame_shape=field, particle_diameter_nm=100.0, diameter_sd_nm=5.0, photons=2e4,
-        background=20.0, optics=optics, aberrations=scope.aberrations, camera=camera,
-        min_spacing_px=35.0, tilt_mrad=0.0, seed=2,
-    )  # fmt: skip
-    cal = calibrate(list(beads.stacks), beads.z_nm, camera=camera)
+    cal = bead_calibration(scope, 2, field_shape=field, z_nm=np.arange(-400.0, 400.1, 10.0))
     assert "like the calibration particles" in cal.shape_choice["reason"]
     n_frames = 40
     molecules = place_molecules(
