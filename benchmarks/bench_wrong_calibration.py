@@ -41,11 +41,7 @@ from latentz.calibration import Calibration
 from latentz.localization import mismatch
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
-from latentz.validation.molecules import (
-    bead_calibration,
-    localized_molecules,
-    wrong_microscopes,
-)
+from latentz.validation.molecules import with_calibration_of, wrong_microscopes
 
 MICROSCOPES = {"strong": (11, (50.0, 90.0)), "weak": (12, (20.0, 30.0)),
                "very weak": (13, (3.0, 8.0))}  # fmt: skip
@@ -63,14 +59,10 @@ def scores(kind: str, seed: int, astigmatism: tuple[float, float], only_right: b
     rng = np.random.default_rng(seed)
     microscope = random_microscope(rng, astigmatism_nm=astigmatism)
     out, right = [], {}
-    for name, source in wrong_microscopes(microscope).items():
+    for name in wrong_microscopes(microscope):
         if only_right and name not in EXTRA:
             continue
-        cal = bead_calibration(source, seed)
-        locs, truth, _ = localized_molecules(
-            microscope, cal, np.random.default_rng(seed + 1), density_per_um2=0.5, n_frames=6,
-            photons=(1e3, 1e4), z_range_nm=(-400.0, 400.0),
-        )  # fmt: skip
+        locs, truth, cal = with_calibration_of(microscope, name, seed)
         checked = (
             locs["converged"] & ~locs["duplicate"] & np.isfinite(locs["consistency_chi2"])
         ).to_numpy(bool)

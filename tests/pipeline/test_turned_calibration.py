@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from latentz._shared.sanity import LatentzWarning
 from latentz.localization.mismatch import check_calibration_fits
 from latentz.simulate.molecules import random_microscope
-from latentz.validation.molecules import bead_calibration, localized_molecules, wrong_microscopes
+from latentz.validation.molecules import with_calibration_of
 
 pytestmark = pytest.mark.slow
 
@@ -39,11 +39,7 @@ def _localized(kind: str, calibration_of: str):
     calibration, the simulated molecules and the microscope's pixel size (nm)."""
     seed, astigmatism = MICROSCOPES[kind]
     microscope = random_microscope(np.random.default_rng(seed), astigmatism_nm=astigmatism)
-    calibration = bead_calibration(wrong_microscopes(microscope)[calibration_of], seed)
-    locs, truth, _ = localized_molecules(
-        microscope, calibration, np.random.default_rng(seed + 1), density_per_um2=0.5,
-        n_frames=6, photons=(1e3, 1e4), z_range_nm=(-400.0, 400.0),
-    )  # fmt: skip
+    locs, truth, calibration = with_calibration_of(microscope, calibration_of, seed)
     return locs, calibration, truth, microscope.optics.pixel_size_nm
 
 

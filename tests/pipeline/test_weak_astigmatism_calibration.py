@@ -23,7 +23,7 @@ import pytest
 from latentz._shared.sanity import LatentzWarning
 from latentz.localization.mismatch import calibration_mismatch, check_calibration_fits
 from latentz.simulate.molecules import random_microscope
-from latentz.validation.molecules import bead_calibration, localized_molecules, wrong_microscopes
+from latentz.validation.molecules import with_calibration_of
 
 SEED = 52
 
@@ -33,11 +33,7 @@ def _localized(calibration_of: str, seed: int = SEED):
     """Molecules of the very weak microscope ``seed`` localized with the beads of
     ``calibration_of``."""
     microscope = random_microscope(np.random.default_rng(seed), astigmatism_nm=(3.0, 8.0))
-    calibration = bead_calibration(wrong_microscopes(microscope)[calibration_of], seed)
-    locs, _, _ = localized_molecules(
-        microscope, calibration, np.random.default_rng(seed + 1), density_per_um2=0.5,
-        n_frames=6, photons=(1e3, 1e4), z_range_nm=(-400.0, 400.0),
-    )  # fmt: skip
+    locs, _, calibration = with_calibration_of(microscope, calibration_of, seed)
     return locs, calibration
 
 

@@ -37,6 +37,7 @@ __all__ = [
     "nearest_rows",
     "precision_against_bounds",
     "true_positives",
+    "with_calibration_of",
     "wrong_microscopes",
 ]
 
@@ -119,6 +120,17 @@ def localized_molecules(
     correct, _ = correct_rows(truth, locs)
     return locs.assign(correct=correct), truth, calibration
 
+
+def with_calibration_of(microscope: Microscope, calibration_of: str, seed: int) -> Scored:
+    """Molecules of ``microscope`` (0.5 per µm², 6 frames, 10³–10⁴ photons within ±400 nm)
+    localized with a :func:`bead_calibration` of its variant ``calibration_of`` (a key of
+    :func:`wrong_microscopes`: "right" for its own beads), both drawn from ``seed``: the
+    experiment that tests a calibration against molecules it may not fit."""
+    calibration = bead_calibration(wrong_microscopes(microscope)[calibration_of], seed)
+    return localized_molecules(
+        microscope, calibration, np.random.default_rng(seed + 1), density_per_um2=0.5,
+        n_frames=6, photons=(1e3, 1e4), z_range_nm=(-400.0, 400.0),
+    )  # fmt: skip
 
 def true_positives(
     sets: Sequence[tuple[pd.DataFrame, pd.DataFrame]],
