@@ -54,11 +54,35 @@ def test_pupil_quadrature_has_converged():
 
 
 def test_bead_slices_integrate_the_sphere_cross_section():
-    offsets, weights = bead_slices(200.0)
+    offsets, discs, weights = bead_slices(200.0)
     t = offsets / 100.0
     for k in (0, 2, 4):  # exact moments of (1 - t^2) over [-1, 1], normalised
         exact = (2 / (k + 1) - 2 / (k + 3)) / (4 / 3)
         assert np.sum(weights * t**k) == pytest.approx(exact)
+    np.testing.assert_allclose(offsets**2 + discs**2, 100.0**2)  # each disc lies on the sphere
+    # a uniform ball of radius R projects to a lateral variance R^2 / 5 per axis
+    assert np.sum(weights * discs**2 / 4) == pytest.approx(100.0**2 / 5)
+
+
+@pytest.mark.parametrize(("na", "n_medium", "pixel_nm", "radius_nm"),
+                         [(1.4, 1.518, 100.0, 100.0), (0.8, 1.0, 65.0, 100.0)])  # fmt: skip
+def test_disc_image_is_the_mean_of_point_images_over_the_disc(na, n_medium, pixel_nm, radius_nm):
+    """Truth by brute force: the disc as the mean of point emitters on a polar grid (Gauss nodes
+    in r², uniform in angle), each imaged on its own."""
+    scope = Microscope(na=na, n_medium=n_medium, wavelength_nm=600.0, pixel_size_nm=pixel_nm)
+    wave = scope.wavefront_nm({"astig_vertical": 40.0, "coma_x": 30.0})
+    defocus = np.array([0.0, 500.0])
+    u, w_u = np.polynomial.legendre.leggauss(6)
+    r = radius_nm * np.sqrt((u + 1) / 2) / pixel_nm  # px
+    angle = 2 * np.pi * (np.arange(12) + 0.5) / 12
+    points = [scope.pixel_image(0.2 + ri * np.cos(a), -0.1 + ri * np.sin(a), wave, defocus, 15)
+              for ri in r for a in angle]  # fmt: skip
+    brute = np.tensordot(np.repeat(w_u / 2 / 12, 12), np.array(points), axes=(0, 0))
+    disc = scope.pixel_image(0.2, -0.1, wave, defocus, 15,
+                             disc_radius_nm=np.full(2, radius_nm))  # fmt: skip
+    point = scope.pixel_image(0.2, -0.1, wave, defocus, 15)
+    assert np.abs(point - brute).max() > 0.02 * brute.max()  # the disc's extent shows
+    np.testing.assert_allclose(disc, brute, atol=1e-4 * brute.max())
 
 
 def test_fields_are_not_low_order_polynomials():

@@ -120,7 +120,7 @@ def render_patches(
     """(m, size, size) expected photon fraction of one emitter at (x, y) for each defocus,
     centred on the pixel nearest the emitter; the patch shrinks where the spot is small."""
     wave = microscope.wavefront_nm(fields.coefficients([x_px], [y_px])[0])
-    offsets, weights = bead_slices(bead_nm)
+    offsets, discs, weights = bead_slices(bead_nm)
     dx, dy = x_px - np.rint(x_px), y_px - np.rint(y_px)
     out = np.zeros((len(defocus_nm), size, size))
     slope = microscope.na / np.sqrt(microscope.n_medium**2 - microscope.na**2)
@@ -130,7 +130,8 @@ def render_patches(
         rows = np.flatnonzero(need == patch)
         for chunk in np.array_split(rows, max(1, rows.size // 8)):
             planes = (defocus_nm[chunk][:, None] + offsets[None, :]).ravel()
-            img = microscope.pixel_image(dx, dy, wave, planes, patch)
+            img = microscope.pixel_image(dx, dy, wave, planes, patch,
+                                         disc_radius_nm=np.tile(discs, chunk.size))  # fmt: skip
             img = np.einsum("msij,s->mij", img.reshape(chunk.size, offsets.size, patch, patch),
                             weights)  # fmt: skip
             lo = size // 2 - patch // 2

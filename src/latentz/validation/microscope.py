@@ -35,9 +35,9 @@ low-NA microscope of :func:`latentz.validation.make_data`):
 
 Intensities are normalised by the pupil's total power ``Σ_k w_k |P_k|²`` (Parseval), which is
 π (NA/λ)² for the plain scalar pupil. A bead is the incoherent sum over its volume: three
-axial slices (Gauss quadrature for the sphere's cross-section area, weight 1 − t²); its lateral
-extent is neglected (a 100 nm bead against a 710 nm Airy radius; the random family draws beads
-up to 200 nm, where a real bead's image would be slightly wider than this one's).
+axial slices (Gauss quadrature for the sphere's cross-section area, weight 1 − t²), each a uniform
+disc of the sphere's radius at that height, convolved with the slice's PSF in the Fourier domain
+(the disc's transform is an Airy pattern).
 """
 
 from __future__ import annotations
@@ -59,17 +59,38 @@ POLYNOMIALS = {
 }
 
 
-def bead_slices(diameter_nm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Axial offsets (nm) and weights (sum 1) of three slices through a uniform sphere.
+def bead_slices(diameter_nm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Axial offsets (nm), disc radii (nm) and weights (sum 1) of three slices through a uniform
+    sphere.
 
     Gauss quadrature for the weight 1 − t² on [−1, 1] (the cross-section area): nodes 0 and
     ±sqrt(3/7), exact for polynomials in t up to degree 5.
     """
     radius = diameter_nm / 2
     if radius <= 0:
-        return np.zeros(1), np.ones(1)
-    a = np.sqrt(3 / 7)
-    return radius * np.array([-a, 0.0, a]), np.array([7 / 30, 8 / 15, 7 / 30])
+        return np.zeros(1), np.zeros(1), np.ones(1)
+    t = np.sqrt(3 / 7) * np.array([-1.0, 0.0, 1.0])
+    return radius * t, radius * np.sqrt(1 - t**2), np.array([7 / 30, 8 / 15, 7 / 30])
+
+
+def _blur_by_disc(intensity: np.ndarray, radius_nm: np.ndarray, step_nm: float) -> np.ndarray:
+    """(m, ny, nx) intensity sampled every ``step_nm`` convolved with a uniform disc of radius
+    ``radius_nm`` (m,) (or one radius for all), the disc normalised to unit area.
+
+    The disc's transform is 2 J₁(2π f r) / (2π f r) at spatial frequency f. The intensity is
+    band-limited to 2 NA/λ; where the samples resolve it (``step_nm`` ≤ λ / (4 NA)), multiplying
+    its discrete transform by that factor convolves the continuous intensity, up to the light
+    that wraps around the grid's edges.
+    """
+    from scipy.special import j1
+
+    ny, nx = intensity.shape[-2:]
+    fy, fx = np.fft.fftfreq(ny, step_nm), np.fft.rfftfreq(nx, step_nm)
+    f = np.hypot(fy[:, None], fx[None, :])
+    arg = 2 * np.pi * f[None] * np.broadcast_to(radius_nm, intensity.shape[:1])[:, None, None]
+    safe = np.where(arg > 0, arg, 1.0)
+    factor = np.where(arg > 0, 2 * j1(safe) / safe, 1.0)
+    return np.fft.irfft2(np.fft.rfft2(intensity) * factor, s=(ny, nx))
 
 
 @dataclass(frozen=True)
@@ -198,18 +219,26 @@ class Microscope:
         size: int,
         *,
         weights: np.ndarray | None = None,
+        disc_radius_nm: np.ndarray | None = None,
     ) -> np.ndarray:
         """Expected fraction of the photons in each pixel of a ``size`` × ``size`` patch: (m, size,
         size), or one image (size, size) summed with ``weights`` over the m defocus values.
 
-        The emitter sits ``(dx_px, dy_px)`` from the centre of the patch's central pixel.
+        The emitter sits ``(dx_px, dy_px)`` from the centre of the patch's central pixel. With
+        ``disc_radius_nm`` (m,), the emitter at each defocus is a uniform disc of that radius
+        (a slice through a bead), not a point.
         """
         q = self.subsamples
         half = size // 2
-        offsets = (np.arange(size * q) + 0.5) / q - 0.5 - half  # sample points, pixels
+        step_nm = self.pixel_size_nm / q
+        radius = np.zeros(1) if disc_radius_nm is None else np.asarray(disc_radius_nm, float)
+        pad = int(np.ceil(radius.max() / step_nm)) + 2 if radius.max() > 0 else 0
+        offsets = (np.arange(-pad, size * q + pad) + 0.5) / q - 0.5 - half  # sample points, px
         x_nm = (offsets - dx_px) * self.pixel_size_nm
         y_nm = (offsets - dy_px) * self.pixel_size_nm
         intensity = self.intensity(x_nm, y_nm, wavefront_nm, defocus_nm)
+        if pad:
+            intensity = _blur_by_disc(intensity, radius, step_nm)[:, pad:-pad, pad:-pad]
         pixels = intensity.reshape(-1, size, q, size, q).mean(axis=(2, 4))
         pixels = pixels * self.pixel_size_nm**2
         if weights is None:
