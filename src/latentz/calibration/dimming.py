@@ -44,9 +44,9 @@ bright particles' centres, so each refit's position less the calibration's own f
 (``dim{k}_dx``, ``dim{k}_dy``) is interpolated in log c as the shape value is
 (:func:`position_shift`) and taken off the spot's position with Δx', Δy'.
 
-What it cannot see: a calibration bead is not a point emitter (docs/accuracy.md, "Where the z
-error comes from": the field and bead part), and at very low counts the fit's own small-sample
-bias.
+What it cannot see: a calibration bead is not a point emitter, unless the calibration was given
+the beads' diameter (docs/accuracy.md, "Emitters of another size than the calibration
+particles"), and at very low counts the fit's own small-sample bias.
 """
 
 from __future__ import annotations

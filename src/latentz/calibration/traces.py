@@ -127,6 +127,46 @@ class Traces:
             offset_px=self.offset_px,
         )
 
+    def as_point_emitters(self, particle_diameter_nm: float, pixel_size_nm: float) -> Traces:
+        """These traces as a point emitter at each particle's centre would have given them.
+
+        A uniform ball of diameter d images as the PSF convolved with its projection, which adds
+        d²/20 to the image's variance along every axis and leaves its covariance and photons
+        unchanged. So d²/20 (in px², ``pixel_size_nm``) is taken off wx² and wy² of every fit
+        (the dimmed refits' too), ρ keeps the covariance ρ wx wy, the amplitude keeps the photons
+        (A ∝ 1 / √det Σ), and the errors of wx, wy, ρ and A follow to first order. A fit narrower
+        than the blur along an axis becomes unmeasured (NaN, not converged).
+        """
+        blur_px2 = check_positive("particle_diameter_nm", particle_diameter_nm) ** 2 / 20.0
+        blur_px2 /= check_positive("pixel_size_nm", pixel_size_nm) ** 2
+        data = dict(self.data)
+        fits = [""] + sorted({name[: -len("wx")] for name in DIM_COLUMNS if name.endswith("_wx")})
+        for prefix in fits:
+            if f"{prefix}wx" not in data:
+                continue
+            wx, wy, rho, amp = (data[f"{prefix}{k}"] for k in ("wx", "wy", "rho", "amplitude"))
+            with np.errstate(invalid="ignore"):
+                wx2, wy2 = wx**2 - blur_px2, wy**2 - blur_px2
+                ok = (wx2 > 0) & (wy2 > 0)
+                new_wx = np.where(ok, np.copysign(np.sqrt(np.abs(wx2)), wx), np.nan)
+                new_wy = np.where(ok, np.copysign(np.sqrt(np.abs(wy2)), wy), np.nan)
+                narrowing = wx * wy / (new_wx * new_wy)  # (wx wy) / (wx' wy') ≥ 1
+                new_rho = rho * narrowing
+                ok &= np.abs(new_rho) < 1
+                gain = narrowing * np.sqrt((1 - rho**2) / (1 - new_rho**2))  # A' / A
+            values = {"wx": new_wx, "wy": new_wy, "rho": new_rho, "amplitude": amp * gain}
+            error_scale = {"wx": wx / new_wx, "wy": wy / new_wy, "rho": narrowing,
+                           "amplitude": gain}  # fmt: skip
+            for name, value in values.items():
+                data[f"{prefix}{name}"] = np.where(ok, value, np.nan)
+                if f"{prefix}{name}_err" in data:
+                    error = data[f"{prefix}{name}_err"] * np.abs(error_scale[name])
+                    data[f"{prefix}{name}_err"] = np.where(ok, error, np.nan)
+            if not prefix:
+                data["converged"] = data["converged"] & ok
+        return Traces(self.z_nm, data, stack=self.stack, crowded=self.crowded,
+                      offset_px=self.offset_px)  # fmt: skip
+
     def position(self) -> np.ndarray:
         """Median apparent (x, y) of each particle through the stack, in pixels, shape (n, 2)."""
         return np.stack(

@@ -101,6 +101,7 @@ def calibrate(
     threshold: float | None = None,
     method: str = "mle",
     device: str = "auto",
+    particle_diameter_nm: float | None = None,
     **options: Any,
 ) -> Calibration:
     """Calibrate the microscope from through-focus stacks of fluorescent particles.
@@ -144,6 +145,16 @@ def calibrate(
         Gaussian fitting method.
     device : {"auto", "cpu", "cuda"}
         Where the fits run: CPU or GPU (numba's CUDA target, extra ``latentz[gpu]``).
+    particle_diameter_nm : float, optional
+        Diameter of the calibration beads, nm, to read point emitters (single molecules)
+        through them: each fit's d²/20 of variance per axis, the blur of a uniform ball's
+        projection, is taken off before the models are built
+        (:meth:`~latentz.calibration.traces.Traces.as_point_emitters`), so the calibration holds
+        the shapes of a point at the beads' centres; ``cal.traces`` are those. Give it where
+        the beads are not small against the PSF and the emitters are points: 100–200 nm beads
+        at high NA (docs/accuracy.md, "Emitters of another size than the calibration
+        particles"). None (default): the calibration holds the beads' own shapes, for tracking
+        particles like them. The ROI is chosen on the beads as imaged.
     **options
         ``tilt`` (bool, default True): fit and remove the substrate tilt;
         ``heights`` (bool, default True): take each particle's own height off its models where
@@ -172,6 +183,8 @@ def calibrate(
     if shape is not None:
         check_choice("shape", shape, SHAPES)
     check_choice("field_model", field_model, FIELD_CHOICES)
+    if particle_diameter_nm is not None:
+        check_positive("particle_diameter_nm", particle_diameter_nm)
     device = resolve_device(device)
     loaded, z = _load_stacks(stacks, z, camera)
     if "field_shape" not in options:
@@ -182,9 +195,11 @@ def calibrate(
 
     traces_at: dict[int, Traces] = {}
 
-    def once(roi: int, model: str = field_model) -> Calibration:
+    def once(
+        roi: int, model: str = field_model, diameter_nm: float | None = particle_diameter_nm
+    ) -> Calibration:
         """Traces of every particle in a ``roi``-pixel ROI (fitted once per ROI), then the
-        calibration from them with field model ``model``."""
+        calibration from them with field model ``model`` for particles of ``diameter_nm``."""
         if roi not in traces_at:
             traces_at[roi] = extract_traces(
                 loaded,
@@ -206,6 +221,7 @@ def calibrate(
             n_terms=n_terms,
             roi_size=roi,
             method=method,
+            particle_diameter_nm=diameter_nm,
             **options,
         )
 
@@ -216,8 +232,11 @@ def calibrate(
         return cal
     background = frame_background(loaded, camera)
     judge = functools.partial(expected_errors, stacks=loaded, camera=camera, background=background)
-    candidate = functools.partial(_recorded, functools.partial(once, model="nearest"))
-    final = None if field_model == "nearest" else run
+    # candidates are judged on the particles' own images: their shapes, not a point's
+    candidate = functools.partial(
+        _recorded, functools.partial(once, model="nearest", diameter_nm=None)
+    )
+    final = None if field_model == "nearest" and particle_diameter_nm is None else run
     return _calibrate_roi(candidate, min(_FIRST_ROI, limit), limit, judge, final)
 
 
@@ -359,11 +378,14 @@ def calibrate_traces(
     method: str = "mle",
     iterations: int = 0,
     sources: Sequence[str] | None = None,
+    particle_diameter_nm: float | None = None,
     **options: Any,
 ) -> Calibration:
     """Calibrate from traces already fitted (see :func:`calibrate` for the parameters).
 
-    Useful to calibrate on a subset of planes (``traces.planes(...)``) or particles.
+    Useful to calibrate on a subset of planes (``traces.planes(...)``) or particles. With
+    ``particle_diameter_nm``, ``traces`` are the particles' fits as measured: a calibration's
+    own ``cal.traces`` are already those of point emitters.
     """
     camera = Camera() if camera is None else camera
     local_options = _local_options(options)
@@ -378,6 +400,9 @@ def calibrate_traces(
     n_terms = check_int("n_terms", n_terms, minimum=1)
     cull_threshold = check_positive("cull_threshold", cull_threshold)
     neighbours = check_int("neighbours", neighbours, minimum=1)
+    if particle_diameter_nm is not None:
+        particle_diameter_nm = check_positive("particle_diameter_nm", particle_diameter_nm)
+        traces = traces.as_point_emitters(particle_diameter_nm, camera.pixel_size_nm)
     _check_population(traces, camera)
     theta = _astigmatism_angle(traces, shape)
     local = fit_local(traces, _candidates(shape, theta), theta=theta, options=local_options)
@@ -419,6 +444,7 @@ def calibrate_traces(
         "method": method,
         "iterations": check_int("iterations", iterations, minimum=0),
         "sources": [str(x) for x in sources] if sources is not None else [],
+        "particle_diameter_nm": particle_diameter_nm,
         **{k: getattr(local_options, k) for k in LocalOptions.__dataclass_fields__},
     }
     cal = Calibration(

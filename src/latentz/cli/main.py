@@ -202,6 +202,15 @@ def _progress(quiet: bool) -> bool:
 )
 @click.option("--n-terms", default=400, show_default=True, help="Zernike terms.")
 @click.option(
+    "--particle-nm",
+    "particle_diameter_nm",
+    type=float,
+    default=None,
+    help="Diameter of the calibration beads, nm: calibrate for point emitters (single "
+    "molecules) by taking the beads' blur off their images. [default: none, the calibration "
+    "holds the beads' own shapes]",
+)
+@click.option(
     "--out",
     required=True,
     type=click.Path(dir_okay=False, path_type=Path),
@@ -224,6 +233,7 @@ def calibrate(
     roi_size,
     field_model,
     n_terms,
+    particle_diameter_nm,
     out,
     device,
     quiet,
@@ -278,6 +288,7 @@ def calibrate(
         stage_offsets_px=offsets,
         sources=[str(p) for p in stacks],
         device=device,
+        particle_diameter_nm=particle_diameter_nm,
     )
     inputs = {"stacks": list(stacks)}
     for role, path in (

@@ -26,7 +26,8 @@ z readout cannot absorb are measured over the table's converged, unique, located
   squared widths less the spot's (nm², the mean over x and y), read as the σ of a blur: a
   particle's image is the PSF blurred by the particle (σ = 0.22 × its diameter for a sphere,
   22 nm for a 100 nm bead), added in quadrature at every z, so a point molecule falls short of
-  it by that blur however wide the astigmatism makes both. A calibration made at a longer
+  it by that blur however wide the astigmatism makes both (unless ``calibrate`` was given the
+  particles' diameter, which takes the blur off the calibration). A calibration made at a longer
   wavelength falls short by far more (about 60 nm at 1.2x), where a width ratio is diluted
   by the astigmatic spread of strongly astigmatic images.
 
