@@ -178,3 +178,22 @@ def test_point_emitter_traces_undo_a_ball_blur():
     np.testing.assert_allclose(point["wx_err"], 0.01 * bx / wx, rtol=1e-12)  # d(w²) kept
     narrow = Traces(np.array([0.0, 50.0]), {**data, "wx": np.array([[0.3, 2.0]])})
     assert not narrow.as_point_emitters(d_nm, px)["converged"][0, 0]  # narrower than the blur
+
+
+@pytest.mark.slow
+def test_cli_particle_nm_reaches_the_calibration(tmp_path):
+    """`latentz calibrate --particle-nm 200` writes the calibration of the diameter given."""
+    import tifffile
+    from click.testing import CliRunner
+
+    from latentz.cli import main
+
+    stack = tmp_path / "beads.tif"
+    tifffile.imwrite(stack, np.clip(_stack(BEAD_NM), 0, None).astype(np.uint16))
+    out = tmp_path / "cal.h5"
+    args = [stack, "--z-start", Z_NM[0], "--z-step", 25.0, "--offset", 100, "--gain", 1,
+            "--readnoise", 1, "--pixel-size-nm", PX_NM, "--shape", "auto", "--roi-size", ROI,
+            "--field-model", "nearest", "--particle-nm", BEAD_NM, "--out", out]  # fmt: skip
+    result = CliRunner().invoke(main, ["calibrate", *map(str, args)], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert Calibration.load(out).options["particle_diameter_nm"] == BEAD_NM
