@@ -134,8 +134,9 @@ class Traces:
         d²/20 to the image's variance along every axis and leaves its covariance and photons
         unchanged. So d²/20 (in px², ``pixel_size_nm``) is taken off wx² and wy² of every fit
         (the dimmed refits' too), ρ keeps the covariance ρ wx wy, the amplitude keeps the photons
-        (A ∝ 1 / √det Σ), and the errors of wx, wy, ρ and A follow to first order. A fit narrower
-        than the blur along an axis becomes unmeasured (NaN, not converged).
+        (A ∝ 1 / √det Σ), and the errors of wx, wy, ρ and A follow to first order (their
+        correlations are kept). A fit narrower than the blur along an axis becomes unmeasured
+        (NaN, not converged).
         """
         blur_px2 = check_positive("particle_diameter_nm", particle_diameter_nm) ** 2 / 20.0
         blur_px2 /= check_positive("pixel_size_nm", pixel_size_nm) ** 2
