@@ -24,8 +24,10 @@ def run_draws(
     draws: int,
     first: int,
     size: str,
+    flags: dict[str, str] | None = None,
 ) -> None:
-    """Parse ``--first/--draws/--size/--out`` (defaults as given) and ``--renders/--jobs``, then
+    """Parse ``--first/--draws/--size/--out`` (defaults as given), ``--renders/--jobs`` and the
+    switches ``flags`` ({name: help}, each passed to ``row_of`` as a keyword of that name), then
     for each seed compute ``row_of(seed, size, renders)`` (``--jobs`` draws at a time, each in
     its own process), print it and ``write`` every row so far, by seed, with the seconds
     spent."""
@@ -41,13 +43,17 @@ def run_draws(
         help="a folder that keeps each draw's images for later runs",
     )
     parser.add_argument("--jobs", type=int, default=1, help="draws run at once")
+    for name, text in (flags or {}).items():
+        parser.add_argument(f"--{name.replace('_', '-')}", action="store_true", help=text)
     args = parser.parse_args()
+    switches = {name: getattr(args, name) for name in flags or {}}
     warnings.simplefilter("ignore")
     start, rows = time.perf_counter(), []
     seeds = range(args.first, args.first + args.draws)
     pool = ProcessPoolExecutor(args.jobs, get_context("spawn"), warnings.simplefilter, ("ignore",))
     with pool:
-        pending = [pool.submit(row_of, seed, args.size, args.renders) for seed in seeds]
+        pending = [pool.submit(row_of, seed, args.size, args.renders, **switches)
+                   for seed in seeds]  # fmt: skip
         for done in as_completed(pending):
             rows = sorted([*rows, done.result()], key=lambda row: row["seed"])
             print(done.result(), file=sys.stderr, flush=True)

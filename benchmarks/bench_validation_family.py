@@ -15,9 +15,10 @@ One row per draw; then the issue's criteria: every draw calibrates, z RMSE ≤ 2
 of draws and ≤ 3× on all, 1σ covers 60–76 % pooled per axis and 50–85 % on every draw.
 Writes ``results/bench_validation_family.md`` after every draw (atomically).
 
-Run: ``python benchmarks/bench_validation_family.py [--draws 24] [--first 0] [--size full]``
-(``--size small``, ``tiny`` or ``ci`` for a reduced field, fewer particles and spots; ``ci``
-also shorter stacks).
+Run: ``python benchmarks/bench_validation_family.py [--draws 24] [--first 0] [--size full]
+[--bead-size]`` (``--size small``, ``tiny`` or ``ci`` for a reduced field, fewer particles and
+spots; ``ci`` also shorter stacks; ``--bead-size`` tells ``calibrate`` the draw's bead
+diameter, ``particle_diameter_nm``, the one thing beyond the stacks, z and camera).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _draws import run_draws  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_validation_family.md"
+BEAD_SIZE = ("give calibrate the draw's bead diameter (particle_diameter_nm), as a user who "
+             "knows their beads would; the test emitters are points")  # fmt: skip
 
 
 def verdict(table: pd.DataFrame, pooled: dict[str, float]) -> list[str]:
@@ -89,6 +92,7 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
         f"Command: `python benchmarks/bench_validation_family.py --draws {args.draws} "
         f"--first {args.first} --size {args.size} --jobs {args.jobs}"
         + (f" --renders {args.renders}" if args.renders else "")
+        + (" --bead-size" if args.bead_size else "")
         + f"` ({len(rows)} draws done, {seconds / 60:.0f} min on a 2-core machine"
         + (", images read back where kept" if args.renders else "")
         + f"; `{args.size}`: {FAMILY_SIZES[args.size]}).",
@@ -109,7 +113,7 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
 
 def main() -> None:
     run_draws(__doc__.splitlines()[0], run_defaults, write, out=OUT, draws=24, first=0,
-              size="full")
+              size="full", flags={"bead_size": BEAD_SIZE})  # fmt: skip
 
 
 if __name__ == "__main__":

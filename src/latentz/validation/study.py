@@ -19,19 +19,24 @@ if TYPE_CHECKING:
 __all__ = ["calibrate_defaults", "common_spots", "run_defaults"]
 
 
-def calibrate_defaults(stacks: Any, z_nm: Any, camera: Camera) -> tuple[Calibration | None, dict]:
-    """``calibrate`` with no shape, ROI or field model given: the calibration and what it chose
-    (``ROI``, ``shape``, ``field model``), or None and ``fails``, the first line of its error."""
+def calibrate_defaults(
+    stacks: Any, z_nm: Any, camera: Camera, particle_diameter_nm: float | None = None
+) -> tuple[Calibration | None, dict]:
+    """``calibrate`` with no shape, ROI or field model given (and the beads' diameter, nm, if
+    given): the calibration and what it chose (``ROI``, ``shape``, ``field model``), or None and
+    ``fails``, the first line of its error."""
     from latentz.calibration import calibrate
 
     try:
-        cal = calibrate(stacks, z_nm, camera=camera)
+        cal = calibrate(stacks, z_nm, camera=camera, particle_diameter_nm=particle_diameter_nm)
     except ValueError as err:
         return None, {"fails": str(err).splitlines()[0][:160]}
     return cal, {"ROI": cal.roi_size, "shape": cal.shape, "field model": cal.field_model}
 
 
-def run_defaults(seed: int, size: str = "full", renders: Path | None = None) -> dict:
+def run_defaults(
+    seed: int, size: str = "full", renders: Path | None = None, *, bead_size: bool = False
+) -> dict:
     """One row for draw ``seed`` at ``size``: its settings; what ``calibrate`` chose with no
     shape, ROI or field model given (or ``fails``, the first line of its error); the spots
     found and in range; z, x and y RMSE (nm) and the 1σ coverage of each axis over every spot in
@@ -41,7 +46,8 @@ def run_defaults(seed: int, size: str = "full", renders: Path | None = None) -> 
     shared by each emitter's spots); the oracle floor's RMSEs (nm) over the
     spots in range in both, latentz's z RMSE over those same spots (``z RMSE, floor's spots``)
     and their ratio; seconds taken. ``renders``: a folder that keeps the draw's images
-    (:func:`~latentz.validation.family.family_data`)."""
+    (:func:`~latentz.validation.family.family_data`). ``bead_size``: give ``calibrate`` the
+    draw's bead diameter (``particle_diameter_nm``; nothing for point particles)."""
     start = time.perf_counter()
     draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
@@ -51,7 +57,8 @@ def run_defaults(seed: int, size: str = "full", renders: Path | None = None) -> 
            "step nm": draw.z_step_nm}  # fmt: skip
     data = family_data(draw, renders=renders)
     row["render s"] = round(time.perf_counter() - start)
-    cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera)
+    diameter_nm = draw.bead_nm if bead_size and draw.bead_nm > 0 else None
+    cal, choices = calibrate_defaults(data.stacks, data.z_nm, data.camera, diameter_nm)
     row |= choices
     if cal is None:
         return row
