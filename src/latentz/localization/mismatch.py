@@ -356,7 +356,8 @@ def _cause(mismatch: Mismatch) -> str:
         causes.append(
             f"their widths fall short of the calibration's by a blur of {mismatch.blur_nm:.0f} "
             f"nm (σ; a 100 nm bead blurs by 22 nm): emitters smaller than the calibration "
-            "particles, or another wavelength or objective"
+            "particles (calibrate with particle_diameter_nm= the beads' diameter to read point "
+            "emitters), or another wavelength or objective"
         )
     elif mismatch.widths_off:
         causes.append(
