@@ -54,6 +54,25 @@ def test_pupil_quadrature_has_converged_on_the_hardest_draws(key):
     assert np.abs(a - b).max() < 1e-3 * b.max()
 
 
+def test_a_few_gross_errors_do_not_set_the_plane():
+    """2 % of spots read 2 µm off (on the wrong side of a shape's turn) keep their errors, and
+    the others are scored against the true plane, not one pulled 40 nm towards them."""
+    rng = np.random.default_rng(1)
+    n = 600
+    x, y = rng.uniform(0, 256, n), rng.uniform(0, 256, n)
+    sigma = rng.uniform(20.0, 80.0, n)
+    gross = np.arange(n) < 12
+    err = rng.normal(size=n) * sigma + 30.0 - 0.2 * x + np.where(gross, 2000.0, 0.0)
+    errors = pd.DataFrame({"x": x, "y": y, "in_range": True, "err_x_nm": 0.0, "err_y_nm": 0.0,
+                           "err_z_nm": err, "x_err_nm": 1.0, "y_err_nm": 1.0,
+                           "z_err_nm": sigma})  # fmt: skip
+    got = remove_planes(errors)["err_z_nm"].to_numpy()
+    assert np.all(got[gross] > 1900.0)
+    assert abs(np.mean(got[~gross])) < 3 * np.sqrt(np.mean(sigma**2) / n)  # 7 nm; 40 by LS
+    cover = np.mean(np.abs(got[~gross]) <= sigma[~gross])
+    assert cover == pytest.approx(0.683, abs=3 * np.sqrt(0.683 * 0.317 / n))
+
+
 def test_scoring_removes_one_plane_per_axis_and_nothing_else():
     rng = np.random.default_rng(0)
     n = 4000
