@@ -35,16 +35,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from latentz._shared.atomic import write_text_atomic
 from latentz.calibration import Calibration, calibrate
 from latentz.camera import Camera
 from latentz.localization.mismatch import calibration_mismatch
-from latentz.simulate import calibration_dataset
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
 from latentz.validation.datasets import ValidationData, simulate_study
 from latentz.validation.fields import AberrationFields
 from latentz.validation.microscope import Microscope
-from latentz.validation.molecules import localized_molecules
+from latentz.validation.molecules import bead_calibration, localized_molecules
 from latentz.validation.truth import localize_test, score, summary
 
 HERE = Path(__file__).resolve().parent
@@ -105,16 +105,11 @@ def simulator_rows(seed: int) -> list[dict]:
     """The ``--simulator`` rows of microscope ``seed``: points, 200 nm beads as imaged and with
     their diameter."""
     microscope = random_microscope(np.random.default_rng(seed))
-    optics, aberrations, camera = microscope
+    optics = microscope[0]
     rows = []
     for bead, given in ((1.0, None), (200.0, None), (200.0, 200.0)):
-        data = calibration_dataset(
-            n_particles=6, z_nm=np.arange(-1000.0, 1000.1, 25.0), n_stage_positions=1,
-            frame_shape=(128, 128), particle_diameter_nm=bead, diameter_sd_nm=min(5.0, bead / 10),
-            photons=1e5, background=20.0, optics=optics, aberrations=aberrations, camera=camera,
-            min_spacing_px=35.0, tilt_mrad=0.0, seed=seed,
-        )  # fmt: skip
-        cal = calibrate(list(data.stacks), data.z_nm, camera=camera, particle_diameter_nm=given)
+        cal = bead_calibration(microscope, seed, bead_nm=bead, photons=1e5,
+                               particle_diameter_nm=given)  # fmt: skip
         locs, truth, _ = localized_molecules(
             microscope, cal, np.random.default_rng(seed + 1), density_per_um2=0.5, n_frames=8,
             photons=(3e3, 3e4), z_range_nm=(-400.0, 400.0),
@@ -136,14 +131,11 @@ def write(name: str, title: str, rows: list[dict]) -> None:
     """Print ``rows`` as a table and write it to ``results/{name}.md`` under ``title``."""
     text = pd.DataFrame(rows).to_markdown(index=False)
     print(text)
-    out = HERE / "results"
-    out.mkdir(exist_ok=True)
-    tmp = out / f"{name}.md.tmp"
-    tmp.write_text(
+    write_text_atomic(
+        HERE / "results" / f"{name}.md",
         f"# {title}\n\n`python benchmarks/bench_bead_size.py {' '.join(sys.argv[1:])}` (see the "
-        "module docstring)\n\n" + text + "\n"
+        "module docstring)\n\n" + text + "\n",
     )
-    tmp.replace(out / f"{name}.md")
 
 
 def main() -> None:

@@ -52,22 +52,28 @@ def bead_calibration(
     field_shape: tuple[int, int] = (128, 128),
     roi_size: int | None = None,
     z_nm: np.ndarray | None = None,
+    bead_nm: float = 100.0,
+    photons: float = 2e4,
+    particle_diameter_nm: float | None = None,
 ) -> Calibration:
-    """``calibrate`` with defaults (or the given ``roi_size``, px) on six 100 nm beads (20,000
-    photons, background 20) of ``microscope``, imaged at the stage positions ``z_nm`` (nm; from
-    −1 to +1 µm in 25 nm steps if None)."""
+    """``calibrate`` with defaults (or the given ``roi_size``, px, and ``particle_diameter_nm``)
+    on six beads of ``bead_nm`` (s.d. a tenth of it, at most 5 nm) and ``photons`` each
+    (background 20) of ``microscope``, imaged at the stage positions ``z_nm`` (nm; from −1 to
+    +1 µm in 25 nm steps if None)."""
     optics, aberrations, camera = microscope
     if z_nm is None:
         z_nm = np.arange(-1000.0, 1000.1, 25.0)
     data = calibration_dataset(
         n_particles=6, z_nm=z_nm, n_stage_positions=1,
-        frame_shape=field_shape, particle_diameter_nm=100.0, diameter_sd_nm=5.0, photons=2e4,
-        background=20.0, optics=optics, aberrations=aberrations, camera=camera,
+        frame_shape=field_shape, particle_diameter_nm=bead_nm,
+        diameter_sd_nm=min(5.0, bead_nm / 10), photons=photons, background=20.0, optics=optics,
+        aberrations=aberrations, camera=camera,
         min_spacing_px=35.0, tilt_mrad=0.0, seed=seed,
     )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the CPU and the nearest-particle field model notes
-        return calibrate(list(data.stacks), data.z_nm, camera=camera, roi_size=roi_size)
+        return calibrate(list(data.stacks), data.z_nm, camera=camera, roi_size=roi_size,
+                         particle_diameter_nm=particle_diameter_nm)  # fmt: skip
 
 
 def wrong_microscopes(microscope: Microscope) -> dict[str, Microscope]:
@@ -131,6 +137,7 @@ def with_calibration_of(microscope: Microscope, calibration_of: str, seed: int) 
         microscope, calibration, np.random.default_rng(seed + 1), density_per_um2=0.5,
         n_frames=6, photons=(1e3, 1e4), z_range_nm=(-400.0, 400.0),
     )  # fmt: skip
+
 
 def true_positives(
     sets: Sequence[tuple[pd.DataFrame, pd.DataFrame]],
