@@ -79,6 +79,15 @@ def markdown(table: pd.DataFrame) -> str:
 COLUMNS = ("spots", "ratio", "cov x", "cov y", "cov z", "fails")
 
 
+def focus_line(done: pd.DataFrame, weights: np.ndarray) -> str:
+    """The pooled x / y coverage without the particles' own lateral reference, where the rows
+    carry it."""
+    if not {"cov x focus", "cov y focus"} <= set(done.columns) or not weights.sum():
+        return "."
+    pooled = [float(np.sum(done[f"cov {a} focus"] * weights) / weights.sum()) for a in "xy"]
+    return "; without the particles' own lateral reference, x / y {:.1%} / {:.1%}.".format(*pooled)
+
+
 def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
     table = pd.DataFrame(rows)
     table = table.reindex(columns=[*table.columns, *(c for c in COLUMNS if c not in table)])
@@ -98,12 +107,15 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
         + f"; `{args.size}`: {FAMILY_SIZES[args.size]}).",
         "",
         "z RMSE, floor and x / y RMSE in nm after one offset and one plane per axis; `cov` is "
-        "the share of in-range spots with |error| ≤ the reported 1σ.",
+        "the share of in-range spots with |error| ≤ the reported 1σ; `ref x`, `ref y` the "
+        "particles' own lateral reference part of σ (nm), and `cov x focus`, `cov y focus` the "
+        "coverage without it.",
         "",
         markdown(table),
         "",
         "Pooled over the draws that calibrated (weighted by spots): 1σ covers "
-        + " / ".join(f"{a} {pooled[a]:.1%}" for a in "xyz") + ".",
+        + " / ".join(f"{a} {pooled[a]:.1%}" for a in "xyz")
+        + focus_line(done, weights),
         "",
         *verdict(table.assign(fails=table.get("fails", "")), pooled),
         "",

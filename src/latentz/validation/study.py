@@ -47,7 +47,10 @@ def run_defaults(
     spots in range in both, latentz's z RMSE over those same spots (``z RMSE, floor's spots``)
     and their ratio; seconds taken. ``renders``: a folder that keeps the draw's images
     (:func:`~latentz.validation.family.family_data`). ``bead_size``: give ``calibrate`` the
-    draw's bead diameter (``particle_diameter_nm``; nothing for point particles)."""
+    draw's bead diameter (``particle_diameter_nm``; nothing for point particles). Beside them,
+    the particles' own lateral reference part of σ (``ref x``, ``ref y``, nm) and the 1σ coverage
+    of x and y without it (``cov x focus``, ``cov y focus``: ``apply(lateral_reference=
+    "focus")`` on the same spots)."""
     start = time.perf_counter()
     draw = draw_microscope(seed, size)
     row = {"seed": seed, "medium": draw.medium, "NA": round(draw.na, 2),
@@ -84,6 +87,10 @@ def run_defaults(
     for axis in "xyz":
         shared = cal.reference_sigma_nm(axis) if axis in "xy" else 0.0
         row[f"cov {axis} low"], row[f"cov {axis} high"] = coverage_interval(scored, axis, shared)
+    focus = summary(score(data, cal.apply(spots, lateral_reference="focus")))
+    for axis in "xy":
+        row[f"ref {axis}"] = cal.reference_sigma_nm(axis)
+        row[f"cov {axis} focus"] = focus[f"cover_{axis}"]
     row["total s"] = round(time.perf_counter() - start)
     return row
 
