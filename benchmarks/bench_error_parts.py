@@ -100,14 +100,15 @@ def split(data, cal, size: str) -> pd.DataFrame:
     return both
 
 
-def row_of(seed: int, size: str) -> dict:
-    """One draw's row: settings, coverage and the k factors of each part."""
+def row_of(seed: int, size: str, renders: Path | None = None) -> dict:
+    """One draw's row: settings, coverage and the k factors of each part. ``renders``: a
+    folder that keeps the draw's images (:func:`~latentz.validation.family.family_data`)."""
     from latentz.calibration import calibrate
 
     draw = draw_microscope(seed)
     row = {"seed": seed, "NA": round(draw.na, 2), "px nm": round(draw.pixel_size_nm),
            "form": draw.form, "bead nm": round(draw.bead_nm)}  # fmt: skip
-    data = family_data(draw, size)
+    data = family_data(draw, size, renders=renders)
     try:
         cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
     except ValueError as err:
