@@ -6,7 +6,8 @@ varied per draw), ``calibrate`` runs with defaults only, then once at every cand
 considered (``cal.options["roi_choice"]``), and each calibration localizes the same test frames
 (point emitters of 10³–10⁴ photons). Each is scored against geometric truth: the emitter's
 defocus from the focal surface plus that surface's height at its place (where the optics put
-it; no latentz function), after one global offset and one plane. One row per draw and ROI:
+it; no latentz function), after one global offset and one plane (:func:`latentz.validation.
+truth.score`, the plane fitted without gross errors). One row per draw and ROI:
 z RMSE, the share of test spots localized, and 1σ coverage of ``z_err_nm``; the row the
 default chose is marked, and the brute-force best is the one with the smallest z RMSE.
 
@@ -21,32 +22,17 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from latentz.calibration import calibrate
 from latentz.camera import Camera
 from latentz.validation import Microscope, make_data
 from latentz.validation.fields import AberrationFields
-from latentz.validation.truth import localize_test
+from latentz.validation.truth import localize_test, score, summary
 
 OUT = Path(__file__).resolve().parent / "results"
 #: (NA, pixel size nm, scale of the random aberration fields) of each draw, in order.
 DRAWS = ((0.55, 130.0, 1.0), (0.8, 100.0, 1.5), (0.45, 160.0, 0.7), (0.7, 110.0, 1.0))
-
-
-def geometric_errors(data, located: pd.DataFrame) -> pd.DataFrame:
-    """z error (nm) of each localized test spot against the geometric truth, after one global
-    offset and one plane, and its reported ``z_err_nm``; NaN where not in range."""
-    spots = located.merge(data.test_truth, on=["emitter", "frame"], suffixes=("", "_true"))
-    x, y = spots["x_true"].to_numpy(), spots["y_true"].to_numpy()
-    truth = spots["defocus_nm"].to_numpy() + data.fields.focal_surface_nm(x, y)
-    ok = spots["in_range"].to_numpy(bool) & np.isfinite(spots["z_nm"].to_numpy())
-    err = spots["z_nm"].to_numpy() - truth
-    design = np.column_stack([np.ones(x.size), x, y])
-    if ok.sum() > 3:
-        err = err - design @ np.linalg.lstsq(design[ok], err[ok], rcond=None)[0]
-    return pd.DataFrame({"err_z_nm": np.where(ok, err, np.nan), "z_err_nm": spots["z_err_nm"]})
 
 
 def draw(k: int, size: str):
@@ -66,15 +52,14 @@ def score_roi(data, roi: int | None) -> tuple[dict, object]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         cal = calibrate(data.stacks, data.z_nm, camera=data.camera, roi_size=roi)
-        errors = geometric_errors(data, localize_test(data, calibration=cal))
-    used = errors.dropna()
+        errors = summary(score(data, localize_test(data, calibration=cal)))
     row = {
         "roi": cal.roi_size,
         "shape": cal.shape,
         "field": cal.field_model,
-        "z_rmse_nm": float(np.sqrt(np.mean(used["err_z_nm"] ** 2))),
-        "found": len(used) / len(data.test_truth),
-        "cover_z": float(np.mean(np.abs(used["err_z_nm"]) <= used["z_err_nm"])),
+        "z_rmse_nm": errors["rmse_z"],
+        "found": errors["spots"] / len(data.test_truth),
+        "cover_z": errors["cover_z"],
         "s": time.perf_counter() - start,
     }
     return row, cal
