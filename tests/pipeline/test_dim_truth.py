@@ -55,8 +55,8 @@ def test_dim_precision_lies_between_the_bound_and_its_known_loss(dim, axis, most
 
 
 def test_dim_z_errors_are_within_their_1_sigma_at_least_68_percent_of_the_time(dim):
-    """The reported σ_z is not understated for dim molecules; it errs on the safe side (69–73 %
-    over bench_dim's microscopes, 76 % over these three)."""
+    """The reported σ_z is not understated for dim molecules; it errs on the safe side (72–76 %
+    over bench_dim's microscopes, 78 % over these three)."""
     seen = dim[np.isfinite(dim["z_nm"])]
     covered = np.mean(np.abs(seen["z_nm"]) < seen["z_err_nm"])
     spread = 2.6 * np.sqrt(0.683 * 0.317 / len(seen))  # 2.6 binomial SE (~500 molecules)
