@@ -45,6 +45,8 @@ from latentz.calibration.local import (
     row_mean,
     sliding_rms,
 )
+from latentz.calibration.particle_curves import bridge_gaps, curves_at, usable_scatter
+from latentz.calibration.particle_table import particle_table
 from latentz.calibration.readout import (
     SHAPE_PARAMS,
     JointZ,
@@ -209,27 +211,7 @@ class Calibration:
         """The calibration curves wx, wy (px) and ρ of particles ``particle`` at tilt-corrected
         ``z_nm`` (arrays of one shape), from their traces smoothed by a running median of 5
         planes; ``<name>_scatter``: each particle's RMS scatter of the trace about that curve."""
-        if "curves" not in self._cache:
-            from scipy.ndimage import median_filter
-
-            curves = {}
-            for name in ("wx", "wy", "rho"):
-                raw = self.traces[name]
-                filled = _bridge_gaps(raw)
-                smooth = median_filter(filled, size=(1, 5), mode="nearest")
-                curves[name] = smooth
-                with np.errstate(invalid="ignore"):
-                    curves[f"{name}_scatter"] = np.sqrt(np.nanmean((raw - smooth) ** 2, axis=1))
-            self._cache["curves"] = curves
-        curves = self._cache["curves"]
-        p = np.asarray(particle, dtype=int)
-        z = np.asarray(z_nm, dtype=np.float64)
-        at = row_weights(self.local.z_nm, p, z)  # where the three curves are read
-        out = {}
-        for name in ("wx", "wy", "rho"):
-            out[name] = interp_rows(self.local.z_nm, curves[name], p, z, at)
-            out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
-        return out
+        return curves_at(self, particle, z_nm)
 
     def shapes_at_particle_brightness(self, located: pd.DataFrame) -> np.ndarray | None:
         """(n, 3) fitted wx, wy (px) and ρ of spots that :meth:`apply` located (their
@@ -367,7 +349,7 @@ class Calibration:
         ``amplitude_coef``.
         """
         if "particles" not in self._cache:
-            self._cache["particles"] = _particle_table(self)
+            self._cache["particles"] = particle_table(self)
         return self._cache["particles"].copy()
 
     def mean_sigma_z(self, shape: str, range_nm: float, *, coverage: float = 0.9) -> np.ndarray:
@@ -459,7 +441,7 @@ class Calibration:
                 sigma, slope = shape.sigma_z, shape.inverse.derivative()
             else:
                 sigma = self.local.sigma_dx if axis == "x" else self.local.sigma_dy
-            filled = _bridge_gaps(sigma)
+            filled = bridge_gaps(sigma)
             self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), slope)
         return self._cache[key]
 
@@ -481,7 +463,7 @@ class Calibration:
                 window = float(self.options.get("sigma_window_nm", LocalOptions().sigma_window_nm))
                 fit = sliding_rms(self.local.z_nm, self.traces[f"{axis}_err"], window_nm=window,
                                   n_params=0)  # fmt: skip
-                fit = _bridge_gaps(fit)
+                fit = bridge_gaps(fit)
                 lack = np.sqrt(np.maximum(residual**2 - np.nan_to_num(fit) ** 2, 0.0))
                 self._cache[key] = lack
         return self._cache[key]
@@ -850,7 +832,7 @@ class Calibration:
         fitted, cov = self._shape_fit(cols)
         if shift is not None:
             fitted = (fitted if shift.ndim == 2 else fitted[:, None]) - shift
-        return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov,
+        return joint_z(self.curves_at, self.local.z_nm, usable_scatter(self), p, fitted, cov,
                        z_only=z_only)  # fmt: skip
 
     def _shape_fit(self, cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -889,25 +871,11 @@ class Calibration:
         if shift is not None:
             fitted = fitted - shift
         window = window[rows]
-        width = profile_width(self.curves_at, self.local.z_nm, self._usable_scatter(), p[rows],
+        width = profile_width(self.curves_at, self.local.z_nm, usable_scatter(self), p[rows],
                               fitted, cov, z[rows], window)  # fmt: skip
         out = sigma.copy()
         out[rows] = np.fmin(sigma[rows], width)
         return out
-
-    def _usable_scatter(self) -> np.ndarray:
-        """(n, 3) RMS scatter of each particle's wx, wy, ρ traces about its curves
-        (:meth:`curves_at`) over its usable planes (:attr:`usable_planes`): far from focus the
-        fitted widths of ring images jump by far more, where no spot is read."""
-        if "usable_scatter" not in self._cache:
-            self.curves_at(0, 0.0)  # the curves, computed once
-            use = self.usable_planes
-            with np.errstate(invalid="ignore"):
-                self._cache["usable_scatter"] = np.column_stack([
-                    np.sqrt(row_mean(np.where(use, (self.traces[k] - self._cache["curves"][k]) ** 2,
-                                              np.nan)))
-                    for k in SHAPE_PARAMS])  # fmt: skip
-        return self._cache["usable_scatter"]
 
     def _joint_shape(self, cols: dict, p: np.ndarray) -> tuple[np.ndarray, JointZ]:
         """The joint readout of the spots of columns ``cols`` and the shape value of its z
@@ -1339,51 +1307,3 @@ def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.n
     best = frame.loc[frame.groupby("track")["base"].idxmin(), ["track", "amplitude"]]
     lookup = dict(zip(best["track"], best["amplitude"], strict=True))
     return frame["track"].map(lookup).to_numpy(dtype=np.float64)
-
-
-def _bridge_gaps(values: np.ndarray) -> np.ndarray:
-    """(n, n_z) ``values`` with each row's NaN planes given the previous finite plane's value
-    (leading ones the next's); rows with no finite value stay NaN."""
-    return pd.DataFrame(values.T).ffill().bfill().to_numpy().T
-
-
-def _particle_table(cal: Calibration) -> pd.DataFrame:
-    local, traces = cal.local, cal.traces
-    px = cal.camera.pixel_size_nm
-    pos = cal.positions
-    table = pd.DataFrame(
-        {
-            "particle": np.arange(len(traces)),
-            "stack": traces.stack,
-            "x": pos[:, 0],
-            "y": pos[:, 1],
-            "x_nm": pos[:, 0] * px,
-            "y_nm": pos[:, 1] * px,
-            "z_f": local.z_f + cal.plane(*(pos * px).T) + cal.heights_nm,
-            "z_f_nm": local.z_f,
-            "height_nm": cal.heights_nm,
-            "in_focus": local.in_focus,
-        }
-    )
-    for name, model in local.shapes.items():
-        table[f"sigma_z_{name}"] = row_mean(model.sigma_z)
-        table[f"z_min_{name}"] = model.z_range[:, 0]
-        table[f"z_max_{name}"] = model.z_range[:, 1]
-    table["sigma_z"] = table[f"sigma_z_{cal.shape}"]
-    table["z_min_nm"] = table[f"z_min_{cal.shape}"]
-    table["z_max_nm"] = table[f"z_max_{cal.shape}"]
-    table["sigma_dx_nm"] = row_mean(local.sigma_dx) * px
-    table["sigma_dy_nm"] = row_mean(local.sigma_dy) * px
-    table["culled"] = cal.culled
-    table["cull_reason"] = cal.reason
-    table["reason"] = cal.reason
-    for column in cal.scores.columns:
-        table[f"score_{column}"] = cal.scores[column].to_numpy()
-    model = local.shapes[cal.shape].inverse
-    table["z_coef"] = list(model.coef)
-    table["z_domain"] = list(model.domain)
-    table["dx_coef"] = list(local.dx.coef)
-    table["dy_coef"] = list(local.dy.coef)
-    table["lateral_domain_nm"] = list(local.dx.domain)
-    table["amplitude_coef"] = list(local.amplitude.coef)
-    return table
