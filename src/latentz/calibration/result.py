@@ -31,21 +31,21 @@ from latentz.calibration.errors import (
     FieldLine,
     combine,
     field_line,
-    fit_sigma_s,
-    measured_noise,
-    noise_by_z,
     reference_sigma,
     spread_through,
 )
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
-from latentz.calibration.local import (
-    LocalModels,
-    LocalOptions,
-    focus_depth_nm,
-    row_mean,
-    sliding_rms,
+from latentz.calibration.local import LocalModels, focus_depth_nm, row_mean
+from latentz.calibration.local_errors import error_model, lack_of_fit, model_sigma
+from latentz.calibration.noise_scale import (
+    calibration_scatter,
+    fit_part_z,
+    noise_scale,
+    noise_scale_at,
+    noise_scale_by_z,
+    through_inverse,
 )
-from latentz.calibration.particle_curves import bridge_gaps, curves_at, usable_scatter
+from latentz.calibration.particle_curves import curves_at, usable_scatter
 from latentz.calibration.particle_table import particle_table
 from latentz.calibration.readout import (
     SHAPE_PARAMS,
@@ -57,24 +57,26 @@ from latentz.calibration.readout import (
 from latentz.calibration.reference import ReferenceField
 from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value, uses_amplitude
+from latentz.calibration.spot_columns import (
+    ERROR_COLUMNS,
+    PARAMS,
+    SPOT_COLUMNS,
+    spot_arrays,
+    stacked,
+)
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
 from latentz.camera import Camera
 from latentz.fit.api import CORRELATION_COLUMNS
 
-__all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
+__all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES"]
 
 FIELD_MODELS = FIELD_MODEL_KINDS
 #: What ``field_model`` accepts: a model, or "auto" (the best by cross-validation).
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
-SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
 #: How :meth:`Calibration.apply` reads z from a spot's shape.
 Z_READOUTS = ("joint", "shape")
-_ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
-_PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
-#: The columns :meth:`Calibration.apply` reads as arrays, where a table has them.
-_READ_COLUMNS = (*_PARAMS, *_ERROR_COLUMNS, *CORRELATION_COLUMNS, "x_err", "y_err")
 #: A spot whose mean width is more than this many times its particle's curves at its z lies
 #: beyond the particle's monotonic range: there the shape value returns to values inside the
 #: range while the widths keep growing. The quality verdict's χ² (10 % curve scatter, limit
@@ -429,110 +431,13 @@ class Calibration:
             np.where(inside, self.local.dy(z), np.nan),
         )
 
-    def _error_model(self, axis: str) -> tuple[np.ndarray, np.ndarray, Any]:
-        """For "z" (the calibration's shape), "x" or "y": each particle's residual σ (n, n_z)
-        with gaps bridged by the nearest finite value, its count of finite values (n,), and for
-        "z" the derivative of its inverse z(s) (None for "x" and "y"); computed once."""
-        key = f"error_model/{axis}"
-        if key not in self._cache:
-            slope = None
-            if axis == "z":
-                shape = self.local.shapes[self.shape]
-                sigma, slope = shape.sigma_z, shape.inverse.derivative()
-            else:
-                sigma = self.local.sigma_dx if axis == "x" else self.local.sigma_dy
-            filled = bridge_gaps(sigma)
-            self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), slope)
-        return self._cache[key]
-
-    def _lack_of_fit(self, axis: str) -> np.ndarray:
-        """For "x" or "y": each particle's lack of fit (px, (n, n_z)), the part of its
-        residual σ about Δx'(z), Δy'(z) that its traces' own fit errors do not explain:
-        ``sqrt(max(σ_res² − σ_fit², 0))``, both as RMS over the local models' sliding window.
-
-        A Gaussian fitted to the real PSF wanders about any smooth curve of z by a few nm near
-        focus (the rings move through the ROI), and every emitter's fits wander like the
-        particles' do, by another pattern; a polynomial's own error does not hold it. Zero where
-        the traces carry no fit errors."""
-        key = f"lack_of_fit/{axis}"
-        if key not in self._cache:
-            residual = self._error_model(axis)[0]
-            if f"{axis}_err" not in self.traces.data:
-                self._cache[key] = np.zeros_like(residual)
-            else:
-                window = float(self.options.get("sigma_window_nm", LocalOptions().sigma_window_nm))
-                fit = sliding_rms(self.local.z_nm, self.traces[f"{axis}_err"], window_nm=window,
-                                  n_params=0)  # fmt: skip
-                fit = bridge_gaps(fit)
-                lack = np.sqrt(np.maximum(residual**2 - np.nan_to_num(fit) ** 2, 0.0))
-                self._cache[key] = lack
-        return self._cache[key]
-
-    def _fit_part_z(self, params: np.ndarray, errors: np.ndarray, corr: np.ndarray | None,
-                    p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
-        """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
-        and correlations (:func:`~latentz.calibration.errors.fit_sigma_s`) and shape values
-        ``s``: σ_s through particle ``p``'s inverse z(s) (:meth:`_through_inverse`)."""
-        sigma_s = fit_sigma_s(self.shape, params, errors, corr,
-                              roi_size=int(self.options.get("roi_size") or 11),
-                              readnoise=self.camera.readnoise, theta=self.local.theta,
-                              amplitude_ref=ref)  # fmt: skip
-        return self._through_inverse(p, s, sigma_s)
-
-    def _through_inverse(self, p: np.ndarray, s: np.ndarray, sigma_s: np.ndarray) -> np.ndarray:
-        """1σ (nm) of z of shape values ``s`` with errors ``sigma_s`` on particles ``p``'s
-        inverse z(s): its spread over s ± σ_s within the inverse's domain, each z held within
-        p's monotonic range, where a spot in range lies
-        (:func:`~latentz.calibration.errors.spread_through`; not the slope dz/ds times σ_s,
-        which an order-16 inverse's wiggles and steep ends make arbitrary)."""
-        model = self.local.shapes[self.shape]
-        inverse = model.inverse[p]
-        return spread_through(inverse, s, sigma_s, inverse.domain, model.z_range[p])
-
-    def _calibration_scatter(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The kept particles' calibration images (k, n_z) about their inverse z(s): z (nm),
-        residual (nm), the fit's part of ``z_err_nm`` that :meth:`apply` would give each
-        (nm) and the image's leverage in its inverse's fit; NaN for images the inverse was not
-        fitted to (outside its monotonic range). Empty without fit errors in the traces."""
-        if "calibration_scatter" not in self._cache:
-            model, tr, k = self.local.shapes[self.shape], self.traces, self.kept
-            self._cache["calibration_scatter"] = (np.empty((0, 0)),) * 4
-            if all(c in tr.data for c in _ERROR_COLUMNS) and k.size:
-                n_z = self.local.z_nm.shape[1]
-                params = np.stack([tr[c][k] for c in _PARAMS], axis=-1).reshape(-1, 7)
-                errors = np.stack([tr[c][k] for c in _ERROR_COLUMNS], axis=-1).reshape(-1, 4)
-                corr = np.stack([tr.data.get(c, np.full(tr["x"].shape, np.nan))[k]
-                                 for c in CORRELATION_COLUMNS], axis=-1).reshape(-1, 6)  # fmt: skip
-                z, values, span = self.local.z_nm[k], model.values[k], model.z_range[k]
-                fitted = np.isfinite(values) & (z >= span[:, :1]) & (z <= span[:, 1:])
-                p = np.repeat(k, n_z)
-                s = np.where(fitted, values, 0.0).ravel()
-                part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
-                self._cache["calibration_scatter"] = (
-                    z,
-                    model.inverse[k].residuals(values, z),
-                    np.where(fitted, part.reshape(len(k), n_z), np.nan),
-                    model.inverse[k].leverage(values, fitted),
-                )
-        return self._cache["calibration_scatter"]
-
     @property
     def noise_scale(self) -> float:
         """Factor (≤ 1) on the fit's part of ``z_err_nm`` over all z: the kept particles'
         usable calibration images against their own fit errors (:func:`~latentz.calibration.
         errors.measured_noise`); 1 for traces without fit errors. Where it is below 1,
         :meth:`apply` uses its value about each z (:attr:`noise_scale_by_z`)."""
-        if "noise_scale" not in self._cache:
-            z, residual, predicted, leverage = self._calibration_scatter()
-            self._cache["noise_scale"] = 1.0
-            if z.size:
-                model, k = self.local.shapes[self.shape], self.kept
-                use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
-                self._cache["noise_scale"] = measured_noise(
-                    residual, np.where(use, predicted, np.nan),
-                    n_params=model.inverse.order + 1, n_fitted=np.isfinite(leverage).sum(axis=1),
-                )  # fmt: skip
-        return self._cache["noise_scale"]
+        return noise_scale(self)
 
     @property
     def noise_scale_by_z(self) -> tuple[np.ndarray, np.ndarray]:
@@ -541,40 +446,7 @@ class Calibration:
         residual over its fit's part and corrected for its leverage
         (:func:`~latentz.calibration.errors.noise_by_z`). Empty where :attr:`noise_scale` is 1
         (the images scatter as their fits say) or the images are too few to follow z."""
-        if "noise_scale_by_z" not in self._cache:
-            self._cache["noise_scale_by_z"] = (np.empty(0), np.empty(0))
-            if self.noise_scale < 1:
-                z, residual, predicted, leverage = self._calibration_scatter()
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    scatter2 = (residual / predicted) ** 2
-                self._cache["noise_scale_by_z"] = noise_by_z(
-                    z.ravel(), scatter2.ravel(), (1 - leverage).ravel()
-                )
-        return self._cache["noise_scale_by_z"]
-
-    def _noise_scale_at(self, z: np.ndarray) -> np.ndarray:
-        """The factor on the fit's part of ``z_err_nm`` at tilt-corrected z (nm):
-        :attr:`noise_scale_by_z` there (held beyond its ends), or :attr:`noise_scale` where
-        that is empty."""
-        grid, scale = self.noise_scale_by_z
-        if grid.size == 0:
-            return np.full(np.shape(z), self.noise_scale)
-        return np.interp(np.where(np.isfinite(z), z, 0.0), grid, scale)
-
-    def _model_sigma(
-        self, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
-    ) -> np.ndarray:
-        """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
-        its residual σ at that z over the square root of its planes per polynomial parameter
-        (``at``: :func:`~latentz.calibration.rows.row_weights` of p and z, if known)."""
-        sigma, count, _ = self._error_model(axis)
-        if axis == "z":
-            order = self.local.shapes[self.shape].inverse.order
-        else:
-            order = (self.local.dx if axis == "x" else self.local.dy).order
-        return interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
-            (order + 1) / np.maximum(count[p], 1)
-        )
+        return noise_scale_by_z(self)
 
     def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
@@ -619,13 +491,13 @@ class Calibration:
         p = held_out["particle"].to_numpy(int)
         z = held_out["z_nm"].to_numpy(float)
         fit = np.zeros(p.size)
-        predicted = self._calibration_scatter()[2]
+        predicted = calibration_scatter(self)[2]
         if predicted.size and p.size:
             row = np.clip(np.searchsorted(self.kept, p), 0, self.kept.size - 1)
             plane = np.argmin(np.abs(self.local.z_nm[p] - z[:, None]), axis=1)
             fit = np.where(self.kept[row] == p, predicted[row, plane], 0.0)
-            fit = np.nan_to_num(fit) * self._noise_scale_at(z) * smoothed_noise(self, p)
-        noise_z = np.hypot(fit, np.nan_to_num(self._model_sigma("z", p, z)))
+            fit = np.nan_to_num(fit) * noise_scale_at(self, z) * smoothed_noise(self, p)
+        noise_z = np.hypot(fit, np.nan_to_num(model_sigma(self, "z", p, z)))
         model = (self.local.dx if axis == "x" else self.local.dy)[p]
         window = self.in_range_window(p, z)
         return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window,
@@ -642,7 +514,7 @@ class Calibration:
             rows = held_out["particle"].to_numpy(int)
             model_nm = noise_nm = None
             if local_models:
-                model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
+                model_nm = scale * model_sigma(self, axis, rows, held_out["z_nm"].to_numpy())
                 if axis != "z":
                     noise_nm = self._carried_noise(held_out, axis)
             self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm,
@@ -824,11 +696,11 @@ class Calibration:
     ) -> JointZ:  # fmt: skip
         """The joint readout (:func:`~latentz.calibration.readout.joint_z`, ``z_only`` as
         there) of spots on their particles ``p``, from their columns ``cols``
-        (:func:`_spot_arrays`), weighted by the covariance of their fits (:func:`~latentz.
-        calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr`` columns where
-        they carry them) times :attr:`noise_scale` squared; ``shift`` (n, 3), if given, is
-        taken off their fitted wx, wy, ρ, or (n, planes, 3) off them at each of the particle's
-        planes."""
+        (:func:`~latentz.calibration.spot_columns.spot_arrays`), weighted by the covariance of
+        their fits (:func:`~latentz.calibration.readout.shape_covariance`: their ``*_err`` and
+        ``*_corr`` columns where they carry them) times :attr:`noise_scale` squared; ``shift``
+        (n, 3), if given, is taken off their fitted wx, wy, ρ, or (n, planes, 3) off them at each
+        of the particle's planes."""
         fitted, cov = self._shape_fit(cols)
         if shift is not None:
             fitted = (fitted if shift.ndim == 2 else fitted[:, None]) - shift
@@ -839,10 +711,10 @@ class Calibration:
         """The fitted (wx, wy, ρ) (n, 3) of the spots of columns ``cols`` and their covariance
         (n, 3, 3) times :attr:`noise_scale` squared (:func:`~latentz.calibration.readout.
         shape_covariance`: their ``*_err`` and ``*_corr`` columns where they carry them)."""
-        params = _stacked(cols, _PARAMS)
+        params = stacked(cols, PARAMS)
         errors = corr = None
-        if all(c in cols for c in _ERROR_COLUMNS):
-            errors, corr = _stacked(cols, _ERROR_COLUMNS), _stacked(cols, CORRELATION_COLUMNS)
+        if all(c in cols for c in ERROR_COLUMNS):
+            errors, corr = stacked(cols, ERROR_COLUMNS), stacked(cols, CORRELATION_COLUMNS)
         cov = shape_covariance(params, errors, corr, roi_size=self.roi_size,
                                readnoise=self.camera.readnoise)  # fmt: skip
         return params[:, 4:7], self.noise_scale**2 * cov
@@ -953,7 +825,7 @@ class Calibration:
         (:meth:`joint_readout`, brightness-corrected) where it lies outside that particle's
         monotonic range (NaN elsewhere), and the particle. The calibration imaged its own
         particles there: far from focus a real PSF is a ring that one Gaussian fits poorly."""
-        cols = _spot_arrays(spots)
+        cols = spot_arrays(spots)
         located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
         p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
         z = self._joint_shape(cols, p)[1].z_nm
@@ -966,7 +838,7 @@ class Calibration:
         """The shape value whose inverse z(s) of particle ``p`` gives ``z`` (nm): Newton steps
         on z(s) from the forward model s(z); NaN where z is outside the inverse's range."""
         model = self.local.shapes[self.shape]
-        inverse, slope = model.inverse[p], self._error_model("z")[2][p]
+        inverse, slope = model.inverse[p], error_model(self, "z")[2][p]
         target = np.where(np.isfinite(z), z, 0.0)
         s = model.forward[p](target)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -1055,7 +927,7 @@ class Calibration:
         """Where :meth:`apply` puts ``spots`` (its checks first), before their errors."""
         check_columns("spots", spots, SPOT_COLUMNS)
         check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
-        cols = _spot_arrays(spots)
+        cols = spot_arrays(spots)
         check_widths(np.column_stack([cols["wx"], cols["wy"]]), self.width_range_px)
         check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
         check_choice("z_readout", z_readout, Z_READOUTS)
@@ -1140,7 +1012,7 @@ class Calibration:
         the shape value's, and the pairs hold both for the joint readout): for another field
         model it counts only beyond the distances its cross-validation held out (above their
         90th percentile), where the model extrapolates; ``cols``: the spots' columns
-        (:func:`_spot_arrays`)."""
+        (:func:`~latentz.calibration.spot_columns.spot_arrays`)."""
         c_spot = None
         if "background" in cols and "dim0_wx" in self.traces.data:
             c_spot = background_ratio(cols["background"], cols["amplitude"],
@@ -1188,24 +1060,25 @@ class Calibration:
         spots carry no fit errors). With the ``joint`` readout, the fit's part is its σ or,
         where larger, its spread over a second minimum; with either readout, at most the
         likelihood's width over the particle's range (:meth:`_profile_bound`). ``cols``: the
-        spots' columns (:func:`_spot_arrays`), NaN for a correlation they lack."""
-        model_part = self._model_sigma("z", p, z, at)
+        spots' columns (:func:`~latentz.calibration.spot_columns.spot_arrays`), NaN for a
+        correlation they lack."""
+        model_part = model_sigma(self, "z", p, z, at)
         fit_part = np.full(len(s), np.nan)
-        if all(c in cols for c in _ERROR_COLUMNS):
+        if all(c in cols for c in ERROR_COLUMNS):
             if joint is None:  # scaled about each z (noise_scale_by_z)
-                params, errors = _stacked(cols, _PARAMS), _stacked(cols, _ERROR_COLUMNS)
-                fit_part = self._noise_scale_at(z) * self._fit_part_z(
-                    params, errors, _stacked(cols, CORRELATION_COLUMNS), p,
+                params, errors = stacked(cols, PARAMS), stacked(cols, ERROR_COLUMNS)
+                fit_part = noise_scale_at(self, z) * fit_part_z(
+                    self, params, errors, stacked(cols, CORRELATION_COLUMNS), p,
                     np.where(in_range, s, 0.0), ref)  # fmt: skip
             else:  # its fit covariance already scaled by noise_scale (joint_readout)
                 fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
             fit_part = self._profile_bound(cols, p, np.where(in_range, z, np.nan), fit_part)
             z_err = np.hypot(fit_part, model_part)
         else:
-            z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
+            z_err = interp_rows(self.local.z_nm, error_model(self, "z")[0], p, z, at)
         if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
             s_in = np.where(in_range, s, 0.0)
-            z_err = combine(z_err, self._through_inverse(p, s_in, np.abs(s_in) * ref_scatter))
+            z_err = combine(z_err, through_inverse(self, p, s_in, np.abs(s_in) * ref_scatter))
         return z_err, fit_part
 
     def _lateral_error(
@@ -1232,13 +1105,13 @@ class Calibration:
         z_in = np.where(in_range, z, 0.0)
         from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0),
                                 self.in_range_window(p, z_in), covering=True)  # fmt: skip
-        model_d = self._model_sigma(axis, p, z, at)
+        model_d = model_sigma(self, axis, p, z, at)
         if f"{axis}_err" in cols:
             own = cols[f"{axis}_err"]
         else:
-            own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
+            own = interp_rows(self.local.z_nm, error_model(self, axis)[0], p, z, at)
         field_d = self._field_sigma(axis, z, distance)  # nm
-        lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
+        lack = interp_rows(self.local.z_nm, lack_of_fit(self, axis), p, z, at)
         return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
 
 
@@ -1248,18 +1121,12 @@ def _range_width(window: np.ndarray) -> np.ndarray:
     return ONE_SIGMA * (window[:, 1] - window[:, 0]) / 2
 
 
-def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
-    """The spots' columns that :meth:`Calibration.apply` reads (:data:`_READ_COLUMNS`, those
-    the table has) as float64 arrays, each read once."""
-    return {c: spots[c].to_numpy(dtype=np.float64) for c in _READ_COLUMNS if c in spots.columns}
-
-
 class _Placed(NamedTuple):
     """Where :meth:`Calibration.apply` puts spots, and what their errors read: the spots'
-    columns ``cols`` (:func:`_spot_arrays`), nearest particles ``p``, shape values ``s``, ``z``
-    (nm, NaN out of range), ``in_range``, the corrected ``x_nm``, ``y_nm``, the joint readout
-    (None with the one shape value) and the amplitude reference ``ref`` with its relative
-    scatter."""
+    columns ``cols`` (:func:`~latentz.calibration.spot_columns.spot_arrays`), nearest
+    particles ``p``, shape values ``s``, ``z`` (nm, NaN out of range), ``in_range``, the
+    corrected ``x_nm``, ``y_nm``, the joint readout (None with the one shape value) and the
+    amplitude reference ``ref`` with its relative scatter."""
 
     cols: dict[str, np.ndarray]
     p: np.ndarray
@@ -1271,12 +1138,6 @@ class _Placed(NamedTuple):
     joint: JointZ | None
     ref: np.ndarray
     ref_scatter: float
-
-
-def _stacked(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray:
-    """(n, len(names)) of the arrays ``cols`` under ``names``, NaN for a name it lacks."""
-    n = len(cols["x"])
-    return np.column_stack([cols[name] if name in cols else np.full(n, np.nan) for name in names])
 
 
 def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
