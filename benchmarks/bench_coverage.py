@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 import latentz as lz
+from latentz.calibration.field_errors import field_sigma
 
 ROI = 15
 
@@ -94,7 +95,7 @@ def study(name: str, cal, located: pd.DataFrame, errors: pd.DataFrame) -> list[s
     lines += [f"{len(errors)} spots; 1σ covers " + ", ".join(cover) + ".", ""]
     actual = errors["err_z_nm"].to_numpy() - errors["err_z_nm"].mean()
     reported = located["z_err_nm"].to_numpy()
-    field = cal._field_sigma("z", z, distance)
+    field = field_sigma(cal, "z", z, distance)
     spots = pd.DataFrame({"actual": actual, "reported": reported, "field": field,
                           "distance_px": distance, "abs_z_nm": np.abs(z)})  # fmt: skip
     for column, edges in (("distance_px", [0, 15, 25, 35, 1e3]),

@@ -44,6 +44,7 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.atomic import write_text_atomic
 from latentz.calibration.errors import DEPTH_FRACTION, ONE_SIGMA
+from latentz.calibration.field_errors import field_sigma
 from latentz.calibration.local import focus_depth_nm
 from latentz.validation.family import draw_microscope, family_data
 from latentz.validation.study import calibrate_defaults
@@ -175,7 +176,7 @@ def study_row(data, cal) -> dict:
                 f"cov {axis} focus": unscored[f"cover_{axis}"],
                 f"need {axis}": needed_part(focus, axis),
                 f"σ {axis}": float(used[f"{axis}_err_nm"].median()),
-                f"field σ {axis}": float(np.nanmedian(cal._field_sigma(axis, z, distance))),
+                f"field σ {axis}": float(np.nanmedian(field_sigma(cal, axis, z, distance))),
                 }  # fmt: skip
     return row
 

@@ -24,6 +24,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from latentz.calibration.field_errors import field_sigma
+from latentz.calibration.local_errors import model_sigma
 from latentz.calibration.workflow import calibrate_traces
 
 HERE = Path(__file__).resolve().parent
@@ -49,8 +51,8 @@ def split(ds, cal, seed: int) -> dict[str, float]:
     _, idx = cKDTree(ds.truth[["field_x", "field_y"]].to_numpy()).query(cal.positions[p])
     offset = (ds.truth["diameter_nm"].to_numpy()[idx] - 1000.0) / 2
     distance = np.hypot(*(spots[["x", "y"]].to_numpy() - cal.positions[p]).T)
-    local = cal._model_sigma("z", p, z["noisy"])
-    field = cal._field_sigma("z", z["noisy"], distance)
+    local = model_sigma(cal, "z", p, z["noisy"])
+    field = field_sigma(cal, "z", z["noisy"], distance)
     total = spots["z_err_nm"].to_numpy()
     fit = np.sqrt(np.maximum(total**2 - local**2 - field**2, 0.0))
     err = z["noisy"] - z_true

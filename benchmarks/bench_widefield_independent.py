@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from latentz._shared.atomic import write_bytes_atomic
 from latentz.calibration import calibrate, calibrate_traces
-from latentz.calibration.result import _track_reference
+from latentz.calibration.placing import track_reference
 from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.validation import SIZES, make_data
 from latentz.validation.datasets import emitter_images
@@ -87,7 +87,7 @@ def idw_baseline(cal, spots: pd.DataFrame, k: int = 4) -> pd.DataFrame:
     theta = cal.local.theta
     model = cal.local.shapes[cal.shape]
     if uses_amplitude(cal.shape):
-        ref = _track_reference(cal.shape, spots, cols, theta)
+        ref = track_reference(cal.shape, spots, cols, theta)
     else:
         ref = np.ones(len(spots))
     s = shape_value(cal.shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],

@@ -6,81 +6,45 @@ and the widefield models built from them. :meth:`Calibration.apply` localizes sp
 the field model of z at the spot's shape value (or, with ``z_readout="joint"``, the value whose
 z its fitted wx, wy, ρ fit best jointly, :mod:`latentz.calibration.readout`), then the lateral
 correction at that z; shape values outside what the particles cover are flagged, never
-extrapolated.
+extrapolated. It runs in two steps: where the spots go (:mod:`latentz.calibration.placing`)
+and what their errors are made of (:mod:`latentz.calibration.spot_errors`).
 :meth:`Calibration.local_z` and :meth:`Calibration.local_delta` evaluate every particle's models
 at once, for the widefield models. The file layout is described in docs/file-format.md.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz._shared.columns import with_columns
-from latentz._shared.sanity import check_roi_size, check_widths
-from latentz._shared.validate import check_choice, check_columns
-from latentz.calibration.dimming import background_ratio
-from latentz.calibration.errors import (
-    DEPTH_FRACTION,
-    ONE_SIGMA,
-    FieldLine,
-    combine,
-    field_line,
-    fit_sigma_s,
-    measured_noise,
-    noise_by_z,
-    reference_sigma,
-    spread_through,
-)
+from latentz._shared.validate import check_choice
+from latentz.calibration.brightness_shifts import shape_params_shift
+from latentz.calibration.errors import DEPTH_FRACTION, reference_sigma
 from latentz.calibration.fieldmodels import FIELD_MODEL_KINDS
-from latentz.calibration.local import (
-    LocalModels,
-    LocalOptions,
-    focus_depth_nm,
-    row_mean,
-    sliding_rms,
-)
-from latentz.calibration.readout import (
-    SHAPE_PARAMS,
-    JointZ,
-    joint_z,
-    profile_width,
-    shape_covariance,
-)
+from latentz.calibration.joint_readout import joint_readout
+from latentz.calibration.local import LocalModels, focus_depth_nm, row_mean
+from latentz.calibration.noise_scale import noise_scale, noise_scale_by_z
+from latentz.calibration.particle_curves import curves_at
+from latentz.calibration.particle_table import particle_table
+from latentz.calibration.placing import place, z_beyond_range
+from latentz.calibration.readout import SHAPE_PARAMS, JointZ
 from latentz.calibration.reference import ReferenceField
-from latentz.calibration.rows import interp_rows, row_weights
-from latentz.calibration.shape import shape_value, uses_amplitude
+from latentz.calibration.spot_errors import spot_errors
 from latentz.calibration.tilt import TiltPlane
 from latentz.calibration.traces import Traces
 from latentz.camera import Camera
-from latentz.fit.api import CORRELATION_COLUMNS
 
-__all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES", "SPOT_COLUMNS"]
+__all__ = ["Calibration", "FIELD_CHOICES", "FIELD_MODELS", "PAPER_SHAPES"]
 
 FIELD_MODELS = FIELD_MODEL_KINDS
 #: What ``field_model`` accepts: a model, or "auto" (the best by cross-validation).
 FIELD_CHOICES = (*FIELD_MODELS, "auto")
 PAPER_SHAPES = ("rho", "rho_w", "rho_A")
-SPOT_COLUMNS = ("x", "y", "amplitude", "wx", "wy", "rho")
-#: How :meth:`Calibration.apply` reads z from a spot's shape.
-Z_READOUTS = ("joint", "shape")
-_ERROR_COLUMNS = ("amplitude_err", "wx_err", "wy_err", "rho_err")
-_PARAMS = ("x", "y", "amplitude", "background", "wx", "wy", "rho")  # fit_rois' order
-#: The columns :meth:`Calibration.apply` reads as arrays, where a table has them.
-_READ_COLUMNS = (*_PARAMS, *_ERROR_COLUMNS, *CORRELATION_COLUMNS, "x_err", "y_err")
-#: A spot whose mean width is more than this many times its particle's curves at its z lies
-#: beyond the particle's monotonic range: there the shape value returns to values inside the
-#: range while the widths keep growing. The quality verdict's χ² (10 % curve scatter, limit
-#: 200) calls such a spot inconsistent too, so single molecules lose nothing more to it.
-BEYOND_WIDTH = 2.0
-#: Spots searched at once against every plane at their own brightness (:meth:`_past_turn`):
-#: the refits read take about 47 values per spot and plane, 19 MB for 200 planes.
-_PLANE_CHUNK = 256
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,38 +173,19 @@ class Calibration:
         """The calibration curves wx, wy (px) and ρ of particles ``particle`` at tilt-corrected
         ``z_nm`` (arrays of one shape), from their traces smoothed by a running median of 5
         planes; ``<name>_scatter``: each particle's RMS scatter of the trace about that curve."""
-        if "curves" not in self._cache:
-            from scipy.ndimage import median_filter
-
-            curves = {}
-            for name in ("wx", "wy", "rho"):
-                raw = self.traces[name]
-                filled = _bridge_gaps(raw)
-                smooth = median_filter(filled, size=(1, 5), mode="nearest")
-                curves[name] = smooth
-                with np.errstate(invalid="ignore"):
-                    curves[f"{name}_scatter"] = np.sqrt(np.nanmean((raw - smooth) ** 2, axis=1))
-            self._cache["curves"] = curves
-        curves = self._cache["curves"]
-        p = np.asarray(particle, dtype=int)
-        z = np.asarray(z_nm, dtype=np.float64)
-        at = row_weights(self.local.z_nm, p, z)  # where the three curves are read
-        out = {}
-        for name in ("wx", "wy", "rho"):
-            out[name] = interp_rows(self.local.z_nm, curves[name], p, z, at)
-            out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
-        return out
+        return curves_at(self, particle, z_nm)
 
     def shapes_at_particle_brightness(self, located: pd.DataFrame) -> np.ndarray | None:
         """(n, 3) fitted wx, wy (px) and ρ of spots that :meth:`apply` located (their
         ``cal_particle`` and ``z_nm``) less the brightness shift its dimmed refits measure
-        (:meth:`_shape_params_shift`): the shapes their particle's own fit would show at their
+        (:func:`~latentz.calibration.brightness_shifts.
+        shape_params_shift`): the shapes their particle's own fit would show at their
         z, comparable with :meth:`curves_at`; None where the calibration has no dimmed refits
         or the spots no ``background``."""
         cols = {c: located[c].to_numpy(float) for c in ("amplitude", "background")
                 if c in located.columns}  # fmt: skip
-        shift = self._shape_params_shift(cols, located["cal_particle"].to_numpy(int),
-                                         located["z_nm"].to_numpy(float))  # fmt: skip
+        shift = shape_params_shift(self, cols, located["cal_particle"].to_numpy(int),
+                                   located["z_nm"].to_numpy(float))  # fmt: skip
         return None if shift is None else located[list(SHAPE_PARAMS)].to_numpy(float) - shift
 
     @property
@@ -367,7 +312,7 @@ class Calibration:
         ``amplitude_coef``.
         """
         if "particles" not in self._cache:
-            self._cache["particles"] = _particle_table(self)
+            self._cache["particles"] = particle_table(self)
         return self._cache["particles"].copy()
 
     def mean_sigma_z(self, shape: str, range_nm: float, *, coverage: float = 0.9) -> np.ndarray:
@@ -447,110 +392,13 @@ class Calibration:
             np.where(inside, self.local.dy(z), np.nan),
         )
 
-    def _error_model(self, axis: str) -> tuple[np.ndarray, np.ndarray, Any]:
-        """For "z" (the calibration's shape), "x" or "y": each particle's residual σ (n, n_z)
-        with gaps bridged by the nearest finite value, its count of finite values (n,), and for
-        "z" the derivative of its inverse z(s) (None for "x" and "y"); computed once."""
-        key = f"error_model/{axis}"
-        if key not in self._cache:
-            slope = None
-            if axis == "z":
-                shape = self.local.shapes[self.shape]
-                sigma, slope = shape.sigma_z, shape.inverse.derivative()
-            else:
-                sigma = self.local.sigma_dx if axis == "x" else self.local.sigma_dy
-            filled = _bridge_gaps(sigma)
-            self._cache[key] = (filled, np.sum(np.isfinite(sigma), axis=1), slope)
-        return self._cache[key]
-
-    def _lack_of_fit(self, axis: str) -> np.ndarray:
-        """For "x" or "y": each particle's lack of fit (px, (n, n_z)), the part of its
-        residual σ about Δx'(z), Δy'(z) that its traces' own fit errors do not explain:
-        ``sqrt(max(σ_res² − σ_fit², 0))``, both as RMS over the local models' sliding window.
-
-        A Gaussian fitted to the real PSF wanders about any smooth curve of z by a few nm near
-        focus (the rings move through the ROI), and every emitter's fits wander like the
-        particles' do, by another pattern; a polynomial's own error does not hold it. Zero where
-        the traces carry no fit errors."""
-        key = f"lack_of_fit/{axis}"
-        if key not in self._cache:
-            residual = self._error_model(axis)[0]
-            if f"{axis}_err" not in self.traces.data:
-                self._cache[key] = np.zeros_like(residual)
-            else:
-                window = float(self.options.get("sigma_window_nm", LocalOptions().sigma_window_nm))
-                fit = sliding_rms(self.local.z_nm, self.traces[f"{axis}_err"], window_nm=window,
-                                  n_params=0)  # fmt: skip
-                fit = _bridge_gaps(fit)
-                lack = np.sqrt(np.maximum(residual**2 - np.nan_to_num(fit) ** 2, 0.0))
-                self._cache[key] = lack
-        return self._cache[key]
-
-    def _fit_part_z(self, params: np.ndarray, errors: np.ndarray, corr: np.ndarray | None,
-                    p: np.ndarray, s: np.ndarray, ref: np.ndarray) -> np.ndarray:  # fmt: skip
-        """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
-        and correlations (:func:`~latentz.calibration.errors.fit_sigma_s`) and shape values
-        ``s``: σ_s through particle ``p``'s inverse z(s) (:meth:`_through_inverse`)."""
-        sigma_s = fit_sigma_s(self.shape, params, errors, corr,
-                              roi_size=int(self.options.get("roi_size") or 11),
-                              readnoise=self.camera.readnoise, theta=self.local.theta,
-                              amplitude_ref=ref)  # fmt: skip
-        return self._through_inverse(p, s, sigma_s)
-
-    def _through_inverse(self, p: np.ndarray, s: np.ndarray, sigma_s: np.ndarray) -> np.ndarray:
-        """1σ (nm) of z of shape values ``s`` with errors ``sigma_s`` on particles ``p``'s
-        inverse z(s): its spread over s ± σ_s within the inverse's domain, each z held within
-        p's monotonic range, where a spot in range lies
-        (:func:`~latentz.calibration.errors.spread_through`; not the slope dz/ds times σ_s,
-        which an order-16 inverse's wiggles and steep ends make arbitrary)."""
-        model = self.local.shapes[self.shape]
-        inverse = model.inverse[p]
-        return spread_through(inverse, s, sigma_s, inverse.domain, model.z_range[p])
-
-    def _calibration_scatter(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The kept particles' calibration images (k, n_z) about their inverse z(s): z (nm),
-        residual (nm), the fit's part of ``z_err_nm`` that :meth:`apply` would give each
-        (nm) and the image's leverage in its inverse's fit; NaN for images the inverse was not
-        fitted to (outside its monotonic range). Empty without fit errors in the traces."""
-        if "calibration_scatter" not in self._cache:
-            model, tr, k = self.local.shapes[self.shape], self.traces, self.kept
-            self._cache["calibration_scatter"] = (np.empty((0, 0)),) * 4
-            if all(c in tr.data for c in _ERROR_COLUMNS) and k.size:
-                n_z = self.local.z_nm.shape[1]
-                params = np.stack([tr[c][k] for c in _PARAMS], axis=-1).reshape(-1, 7)
-                errors = np.stack([tr[c][k] for c in _ERROR_COLUMNS], axis=-1).reshape(-1, 4)
-                corr = np.stack([tr.data.get(c, np.full(tr["x"].shape, np.nan))[k]
-                                 for c in CORRELATION_COLUMNS], axis=-1).reshape(-1, 6)  # fmt: skip
-                z, values, span = self.local.z_nm[k], model.values[k], model.z_range[k]
-                fitted = np.isfinite(values) & (z >= span[:, :1]) & (z <= span[:, 1:])
-                p = np.repeat(k, n_z)
-                s = np.where(fitted, values, 0.0).ravel()
-                part = self._fit_part_z(params, errors, corr, p, s, model.amplitude_ref[p])
-                self._cache["calibration_scatter"] = (
-                    z,
-                    model.inverse[k].residuals(values, z),
-                    np.where(fitted, part.reshape(len(k), n_z), np.nan),
-                    model.inverse[k].leverage(values, fitted),
-                )
-        return self._cache["calibration_scatter"]
-
     @property
     def noise_scale(self) -> float:
         """Factor (≤ 1) on the fit's part of ``z_err_nm`` over all z: the kept particles'
         usable calibration images against their own fit errors (:func:`~latentz.calibration.
         errors.measured_noise`); 1 for traces without fit errors. Where it is below 1,
         :meth:`apply` uses its value about each z (:attr:`noise_scale_by_z`)."""
-        if "noise_scale" not in self._cache:
-            z, residual, predicted, leverage = self._calibration_scatter()
-            self._cache["noise_scale"] = 1.0
-            if z.size:
-                model, k = self.local.shapes[self.shape], self.kept
-                use = np.isfinite(model.sigma_z[k]) & self.usable_planes[k]
-                self._cache["noise_scale"] = measured_noise(
-                    residual, np.where(use, predicted, np.nan),
-                    n_params=model.inverse.order + 1, n_fitted=np.isfinite(leverage).sum(axis=1),
-                )  # fmt: skip
-        return self._cache["noise_scale"]
+        return noise_scale(self)
 
     @property
     def noise_scale_by_z(self) -> tuple[np.ndarray, np.ndarray]:
@@ -559,49 +407,7 @@ class Calibration:
         residual over its fit's part and corrected for its leverage
         (:func:`~latentz.calibration.errors.noise_by_z`). Empty where :attr:`noise_scale` is 1
         (the images scatter as their fits say) or the images are too few to follow z."""
-        if "noise_scale_by_z" not in self._cache:
-            self._cache["noise_scale_by_z"] = (np.empty(0), np.empty(0))
-            if self.noise_scale < 1:
-                z, residual, predicted, leverage = self._calibration_scatter()
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    scatter2 = (residual / predicted) ** 2
-                self._cache["noise_scale_by_z"] = noise_by_z(
-                    z.ravel(), scatter2.ravel(), (1 - leverage).ravel()
-                )
-        return self._cache["noise_scale_by_z"]
-
-    def _noise_scale_at(self, z: np.ndarray) -> np.ndarray:
-        """The factor on the fit's part of ``z_err_nm`` at tilt-corrected z (nm):
-        :attr:`noise_scale_by_z` there (held beyond its ends), or :attr:`noise_scale` where
-        that is empty."""
-        grid, scale = self.noise_scale_by_z
-        if grid.size == 0:
-            return np.full(np.shape(z), self.noise_scale)
-        return np.interp(np.where(np.isfinite(z), z, 0.0), grid, scale)
-
-    def _model_sigma(
-        self, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
-    ) -> np.ndarray:
-        """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
-        its residual σ at that z over the square root of its planes per polynomial parameter
-        (``at``: :func:`~latentz.calibration.rows.row_weights` of p and z, if known)."""
-        sigma, count, _ = self._error_model(axis)
-        if axis == "z":
-            order = self.local.shapes[self.shape].inverse.order
-        else:
-            order = (self.local.dx if axis == "x" else self.local.dy).order
-        return interp_rows(self.local.z_nm, sigma, p, z, at) * np.sqrt(
-            (order + 1) / np.maximum(count[p], 1)
-        )
-
-    def _field_sigma(self, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
-        """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
-        field_sigma`), less the local models' part of the held-out errors and, laterally, the
-        held-out particles' own z noise carried through Δ (:meth:`_carried_noise`)."""
-        kind = self.field_model
-        line = self._held_out_line(lambda: self.crossval_of(kind), kind, axis,
-                                   f"crossval_line/{kind}/{axis}")  # fmt: skip
-        return line.sigma(z, distance)
+        return noise_scale_by_z(self)
 
     def reference_sigma_nm(self, axis: str) -> float:
         """1σ (nm) of the particles' lateral reference on ``axis`` ("x" or "y"): the RMS of
@@ -622,192 +428,6 @@ class Calibration:
             self._cache[key] = sigma * self.camera.pixel_size_nm
         return self._cache[key]
 
-    def _carried_noise(self, held_out: pd.DataFrame, axis: str) -> np.ndarray:
-        """(rows,) nm: how far the held-out particles' own z noise moves their lateral
-        ``axis`` error (:func:`~latentz.calibration.crossval.crossval` reads Δx', Δy' at the
-        predicted z): the fit's part of σ_z of each held-out image (as :meth:`apply` gives a
-        spot, less the smoothing crossval applies to its shape values) and its local model's
-        σ (the neighbours' inverse, alike), through the particle's Δx'(z) or Δy'(z)
-        (:func:`~latentz.calibration.errors.spread_through`, the width that covers 68 %, as
-        for a spot). A spot's own σ_z stands for it
-        (:meth:`_lateral_error`); the field's z error is not in it (a particle's height moves
-        its z read and its Δ alike, and the read z's Δ holds both)."""
-        from latentz.calibration.crossval import smoothed_noise
-
-        p = held_out["particle"].to_numpy(int)
-        z = held_out["z_nm"].to_numpy(float)
-        fit = np.zeros(p.size)
-        predicted = self._calibration_scatter()[2]
-        if predicted.size and p.size:
-            row = np.clip(np.searchsorted(self.kept, p), 0, self.kept.size - 1)
-            plane = np.argmin(np.abs(self.local.z_nm[p] - z[:, None]), axis=1)
-            fit = np.where(self.kept[row] == p, predicted[row, plane], 0.0)
-            fit = np.nan_to_num(fit) * self._noise_scale_at(z) * smoothed_noise(self, p)
-        noise_z = np.hypot(fit, np.nan_to_num(self._model_sigma("z", p, z)))
-        model = (self.local.dx if axis == "x" else self.local.dy)[p]
-        window = self.in_range_window(p, z)
-        return self.camera.pixel_size_nm * spread_through(model, z, noise_z, window,
-                                                          covering=True)  # fmt: skip
-
-    def _held_out_line(self, table: Callable[[], pd.DataFrame], kind: str, axis: str,
-                       key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
-        """The :class:`~latentz.calibration.errors.FieldLine` of the held-out errors
-        ``table()`` with the local models' σ at its rows (``local_models``; False: errors not
-        read through the local models, none taken off), made once and cached under ``key``."""
-        if key not in self._cache:
-            held_out = table()
-            scale = 1.0 if axis == "z" else self.camera.pixel_size_nm
-            rows = held_out["particle"].to_numpy(int)
-            model_nm = noise_nm = None
-            if local_models:
-                model_nm = scale * self._model_sigma(axis, rows, held_out["z_nm"].to_numpy())
-                if axis != "z":
-                    noise_nm = self._carried_noise(held_out, axis)
-            self._cache[key] = field_line(held_out, kind, axis, model_nm=model_nm,
-                                          noise_nm=noise_nm)  # fmt: skip
-        return self._cache[key]
-
-    def _pair_sigma(self, z: np.ndarray, c_spot: np.ndarray | None, distance: np.ndarray,
-                    readout: str = "shape") -> np.ndarray:  # fmt: skip
-        """1σ (nm) of the z error of spots at ``z`` of background ratio ``c_spot`` (None: as
-        bright as the calibration) ``distance`` px from the particle that localizes them, from
-        held-out particles localized by their nearer and farther neighbours with the z
-        ``readout`` of :meth:`apply` (:func:`~latentz.calibration.dim_crossval.pair_table`): at
-        each of its ratios c the :func:`~latentz.calibration.errors.field_sigma` line in
-        distance, then linear in log c between them."""
-        from latentz.calibration.dim_crossval import pair_table
-
-        key = f"pair_table/{readout}"
-        if key not in self._cache:
-            self._cache[key] = pair_table(self, readout)
-        table = self._cache[key]
-        if len(table) == 0 or not table["in_range"].any():
-            return np.zeros(np.shape(z))
-        levels = np.unique(table["c"].to_numpy())
-        by_level = np.array([
-            self._held_out_line(lambda c=c: table[table["c"] == c], "pairs", "z",
-                                f"pair_line/{readout}/{c}", readout == "shape").sigma(z, distance)
-            for c in levels])  # fmt: skip
-        if levels.size == 1 or c_spot is None:
-            return by_level[0]
-        return _interp_levels(np.log(levels), by_level, c_spot)
-
-    def _locate(self, s: np.ndarray, p: np.ndarray, cols: dict, located: np.ndarray) -> tuple:
-        """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
-        own) and in_range of shape values ``s`` at the spots' positions."""
-        if self.widefield is None:
-            z = np.where(located, self.inverse_z(s, p), np.nan)
-            return z, None, np.isfinite(z)
-        # field models of z(x', y'; s) and Δx', Δy'(x', y'; z)
-        z, dx_w, dy_w, in_range = self.widefield(
-            np.where(located, cols["x"], np.nan),
-            np.where(located, cols["y"], np.nan),
-            s,
-            iterations=self.options.get("iterations", 0),
-        )
-        return z, {"x": dx_w, "y": dy_w}, in_range & located
-
-    def _dimming_terms(
-        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
-        plane: np.ndarray | None = None,
-    ) -> tuple[Callable[[str], np.ndarray], np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-        """What the brightness corrections of spots of fitted ``amplitude`` and ``background``
-        on particles ``p`` at ``z`` read: particle ``p``'s traces at z (``trace_at(name)``),
-        the spots' background ratio c, the particle's own c there, and the c the correction
-        starts from.
-
-        Where the calibration particles' brightness follows their size (their heights were
-        taken off, :mod:`latentz.calibration.heights`), spots within the calibration's own range
-        of brightness at their depth (up to its dimmest particles,
-        :func:`~latentz.calibration.dimming.dimmest`) are not shifted; beyond that edge the shift
-        starts there, and its start moves back to the particle's own ratio c as the spot's c
-        goes as far again (in log c) beyond the edge, so that dim emitters get the whole shift
-        from their particle's own fit (:mod:`~latentz.calibration.dimming` notes)."""
-        from latentz.calibration.dimming import dimmest
-
-        readnoise = self.camera.readnoise
-        index, stacked = self._brightness_traces()
-        if plane is None:
-            read = interp_rows(self.local.z_nm, stacked, p, z)  # every trace in one lookup
-        else:
-            read = stacked[p, plane]
-
-        def trace_at(name: str) -> np.ndarray:
-            return read[:, index[name]]
-
-        c_spot = background_ratio(background, amplitude, readnoise)
-        c_own = background_ratio(trace_at("background"), trace_at("amplitude"), readnoise)
-        c_from = c_own
-        if self.options.get("particle_heights", {}).get("applied"):
-            if "dimmest" not in self._cache:
-                rows = self.kept
-                c = background_ratio(self.traces["background"][rows],
-                                     self.traces["amplitude"][rows], readnoise)  # fmt: skip
-                self._cache["dimmest"] = dimmest(self.local.z_nm[rows], c)
-            edge = np.fmax(c_own, np.interp(z, *self._cache["dimmest"]))
-            # the start fades from the edge back to the particle's own c as far again beyond it
-            with np.errstate(invalid="ignore", divide="ignore"):
-                c_from = np.clip(edge**2 / c_spot, c_own, edge)
-        return trace_at, c_spot, c_own, c_from
-
-    def _dimming_shift(
-        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray,
-        ref: np.ndarray,
-    ) -> np.ndarray:  # fmt: skip
-        """How much brighter-than-the-spot calibration images shift the spots' shape values
-        (:func:`~latentz.calibration.dimming.shape_shift`), from particle ``p``'s refits at the
-        spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
-        from latentz.calibration.dimming import shape_shift
-
-        def shape_of(a, wx, wy, rho):
-            return shape_value(self.shape, wx, wy, rho, a, theta=self.local.theta,
-                               amplitude_ref=ref)  # fmt: skip
-
-        shift = shape_shift(shape_of, *self._dimming_terms(amplitude, background, p, z))
-        return np.where(np.isfinite(shift), shift, 0.0)
-
-    def _position_shifts(
-        self, amplitude: np.ndarray, background: np.ndarray, p: np.ndarray, z: np.ndarray
-    ) -> dict[str, np.ndarray]:
-        """How much brighter-than-the-spot calibration images shift the spots' fitted x and y
-        (px, :func:`~latentz.calibration.dimming.position_shift`), from particle ``p``'s
-        refits at the spots' z (:meth:`_dimming_terms`); 0 where that is unknown."""
-        from latentz.calibration.dimming import position_shift
-
-        shift = position_shift(*self._dimming_terms(amplitude, background, p, z))
-        shift = np.where(np.isfinite(shift), shift, 0.0)
-        return {"x": shift[:, 0], "y": shift[:, 1]}
-
-    def _brightness_traces(self) -> tuple[dict[str, int], np.ndarray]:
-        """The traces the brightness corrections read (the calibration's own fit and its
-        refits, :data:`~latentz.calibration.dimming.DIM_COLUMNS`) stacked (n, n_z, k), so
-        that one lookup reads them all, and each name's index in the last axis; computed once
-        (k ≤ 47 traces: about 45 MB for 1000 particles of 121 planes)."""
-        from latentz.calibration.dimming import DIM_COLUMNS
-
-        if "brightness_traces" not in self._cache:
-            names = [name for name in ("amplitude", "wx", "wy", "rho", "background", *DIM_COLUMNS)
-                     if name in self.traces.data]  # fmt: skip
-            stacked = np.stack([self.traces[name] for name in names], axis=2)
-            self._cache["brightness_traces"] = ({n: k for k, n in enumerate(names)}, stacked)
-        return self._cache["brightness_traces"]
-
-    def _transfer_sigma(self, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
-        """1σ (nm) of the dimming correction carried from the nearest particle to spots at
-        ``z`` of background ratio ``c_spot``, measured on held-out particles
-        (:func:`~latentz.calibration.dim_crossval.transfer_sigma`): linear in z between its
-        bins and in log c between its levels, held at the ends; 0 where unknown."""
-        from latentz.calibration.dim_crossval import transfer_sigma
-
-        if "transfer_sigma" not in self._cache:
-            self._cache["transfer_sigma"] = transfer_sigma(self)
-        centres, log_c, sigma = self._cache["transfer_sigma"]
-        if centres.size == 0:
-            return np.zeros(np.shape(z))
-        zq = np.where(np.isfinite(z), z, centres[0])
-        by_level = np.array([np.interp(zq, centres, row) for row in sigma])  # (levels, spots)
-        return _interp_levels(log_c, by_level, c_spot)
-
     @property
     def reference_field(self) -> ReferenceField:
         """A-normalised shapes' reference amplitude across the field, from the kept particles
@@ -817,13 +437,6 @@ class Calibration:
             ref = self.local.shapes[self.shape].amplitude_ref[rows]
             self._cache["reference_field"] = ReferenceField(self.positions[rows], ref)
         return self._cache["reference_field"]
-
-    def _particle_references(self) -> np.ndarray:
-        """(n,) :attr:`reference_field` at every particle's position (computed once), so that a
-        spot takes its nearest particle's entry instead of a tree query of its own."""
-        if "particle_references" not in self._cache:
-            self._cache["particle_references"] = self.reference_field(*self.positions.T)
-        return self._cache["particle_references"]
 
     def nearest(self, x: Any, y: Any) -> np.ndarray:
         """Index of the nearest kept calibration particle to each (x, y) camera position."""
@@ -842,141 +455,12 @@ class Calibration:
     ) -> JointZ:  # fmt: skip
         """The joint readout (:func:`~latentz.calibration.readout.joint_z`, ``z_only`` as
         there) of spots on their particles ``p``, from their columns ``cols``
-        (:func:`_spot_arrays`), weighted by the covariance of their fits (:func:`~latentz.
-        calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr`` columns where
-        they carry them) times :attr:`noise_scale` squared; ``shift`` (n, 3), if given, is
-        taken off their fitted wx, wy, ρ, or (n, planes, 3) off them at each of the particle's
-        planes."""
-        fitted, cov = self._shape_fit(cols)
-        if shift is not None:
-            fitted = (fitted if shift.ndim == 2 else fitted[:, None]) - shift
-        return joint_z(self.curves_at, self.local.z_nm, self._usable_scatter(), p, fitted, cov,
-                       z_only=z_only)  # fmt: skip
-
-    def _shape_fit(self, cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """The fitted (wx, wy, ρ) (n, 3) of the spots of columns ``cols`` and their covariance
-        (n, 3, 3) times :attr:`noise_scale` squared (:func:`~latentz.calibration.readout.
-        shape_covariance`: their ``*_err`` and ``*_corr`` columns where they carry them)."""
-        params = _stacked(cols, _PARAMS)
-        errors = corr = None
-        if all(c in cols for c in _ERROR_COLUMNS):
-            errors, corr = _stacked(cols, _ERROR_COLUMNS), _stacked(cols, CORRELATION_COLUMNS)
-        cov = shape_covariance(params, errors, corr, roi_size=self.roi_size,
-                               readnoise=self.camera.readnoise)  # fmt: skip
-        return params[:, 4:7], self.noise_scale**2 * cov
-
-    def _profile_bound(self, cols: dict, p: np.ndarray, z: np.ndarray,
-                       sigma: np.ndarray) -> np.ndarray:  # fmt: skip
-        """``sigma`` (nm), the fit's part of σ_z of the spots of columns ``cols`` read at z on
-        particles ``p``, where z is poorly read capped by the 68 % half-width about z of their
-        likelihood over the z where a spot in range lies
-        (:func:`~latentz.calibration.readout.profile_width` over :meth:`in_range_window`; wx,
-        wy, ρ corrected for the spot's brightness as in :meth:`_joint_shape`). Poorly read:
-        ``sigma`` wider than the range alone says (:func:`_range_width`), as where the shape
-        hardly changes with z, and σ from the curvature (or from σ_s through the inverse, which
-        piles the normal's tails at the range's ends) spans it many times. Elsewhere ``sigma``
-        stands: there the likelihood of the three widths is narrower than their errors about
-        the curves (on a validation microscope, 44 % instead of 56 % of spots covered)."""
-        found = np.isfinite(z)
-        window = self.in_range_window(np.where(found, p, 0), np.where(found, z, 0.0))
-        with np.errstate(invalid="ignore"):
-            rows = np.flatnonzero(found & (sigma > _range_width(window)))
-        if rows.size == 0:
-            return sigma
-        part = {k: v[rows] for k, v in cols.items()}
-        fitted, cov = self._shape_fit(part)
-        shift = self._shape_params_shift(part, p[rows], z[rows])
-        if shift is not None:
-            fitted = fitted - shift
-        window = window[rows]
-        width = profile_width(self.curves_at, self.local.z_nm, self._usable_scatter(), p[rows],
-                              fitted, cov, z[rows], window)  # fmt: skip
-        out = sigma.copy()
-        out[rows] = np.fmin(sigma[rows], width)
-        return out
-
-    def _usable_scatter(self) -> np.ndarray:
-        """(n, 3) RMS scatter of each particle's wx, wy, ρ traces about its curves
-        (:meth:`curves_at`) over its usable planes (:attr:`usable_planes`): far from focus the
-        fitted widths of ring images jump by far more, where no spot is read."""
-        if "usable_scatter" not in self._cache:
-            self.curves_at(0, 0.0)  # the curves, computed once
-            use = self.usable_planes
-            with np.errstate(invalid="ignore"):
-                self._cache["usable_scatter"] = np.column_stack([
-                    np.sqrt(row_mean(np.where(use, (self.traces[k] - self._cache["curves"][k]) ** 2,
-                                              np.nan)))
-                    for k in SHAPE_PARAMS])  # fmt: skip
-        return self._cache["usable_scatter"]
-
-    def _joint_shape(self, cols: dict, p: np.ndarray) -> tuple[np.ndarray, JointZ]:
-        """The joint readout of the spots of columns ``cols`` and the shape value of its z
-        (:meth:`_shape_at`). Where the calibration has dimmed refits, the readout is repeated
-        with the fitted wx, wy, ρ corrected for the spots' background ratio
-        (:meth:`_shape_params_shift`) at the first readout's z."""
-        joint = self.joint_readout(cols, p)
-        shift = self._shape_params_shift(cols, p, joint.z_nm)
-        if shift is not None:
-            joint = self.joint_readout(cols, p, shift)
-        return self._shape_at(p, joint.z_nm), joint
-
-    def _shape_params_shift(self, cols: dict, p: np.ndarray, z: np.ndarray,
-                            plane: np.ndarray | None = None) -> np.ndarray | None:  # fmt: skip
-        """(n, 3) brightness shift of the fitted wx, wy, ρ of the spots of columns ``cols`` on
-        particles ``p`` at z (nm) (:func:`~latentz.calibration.dimming.shape_shift` of the three
-        at once, from one read of :meth:`_dimming_terms`; 0 where unknown), or None where the
-        calibration has no dimmed refits or the spots no background. ``plane`` (n,), if given,
-        is the index of the particle's plane at z, read without interpolation."""
-        from latentz.calibration.dimming import shape_shift
-
-        if "background" not in cols or "dim0_wx" not in self.traces.data:
-            return None
-        terms = self._dimming_terms(cols["amplitude"], cols["background"], p, z, plane)
-        shift = shape_shift(lambda a, wx, wy, rho: np.column_stack([wx, wy, rho]), *terms)
-        return np.where(np.isfinite(shift), shift, 0.0)
-
-    def _past_turn(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """(n,) spots (columns ``cols``) read at z (nm) from their one shape value whose fitted
-        wx, wy, ρ lie nearest their particle's curves outside the monotonic range of its inverse
-        z(s): the joint search over all the particle's planes (:meth:`joint_readout`) puts them
-        beyond it, with each plane's curves seen at the spot's brightness there
-        (:meth:`_shift_by_plane`) or with the one brightness correction at z. Past the range's
-        end the shape value turns back (far from focus a high-NA PSF's fitted widths stop
-        growing, or the ROI cuts the spot off), so a spot from there has the shape value of one
-        inside it; its widths and ρ together tell the two apart. A dim ring's fit takes its
-        core, far narrower than the bright particle's fit at its plane, which the correction at
-        each plane shows (full family draw 15: 7 of the 13 spots that the one correction leaves
-        in range read over 400 nm off); 4 spots from 1.2 µm below focus on draw 2 lie nearest
-        beyond with the one correction alone."""
-        out = np.zeros(z.size, dtype=bool)
-        found = np.flatnonzero(np.isfinite(z))
-        z_range = self.local.shapes[self.shape].z_range
-        for start in range(0, found.size, _PLANE_CHUNK):
-            rows = found[start : start + _PLANE_CHUNK]
-            part = {name: values[rows] for name, values in cols.items()}
-            lo, hi = z_range[p[rows]].T
-            shifts = [self._shift_by_plane(part, p[rows])]
-            if shifts[0] is not None:  # without dimmed refits or background both are None
-                shifts.append(self._shape_params_shift(part, p[rows], z[rows]))
-            for shift in shifts:
-                joint = self.joint_readout(part, p[rows], shift, z_only=True)
-                with np.errstate(invalid="ignore"):
-                    out[rows] |= (joint.z_nm < lo) | (joint.z_nm > hi)
-        return out
-
-    def _shift_by_plane(self, cols: dict, p: np.ndarray) -> np.ndarray | None:
-        """(n, planes, 3) brightness shift of the fitted wx, wy, ρ of the spots of columns
-        ``cols`` on particles ``p`` at each of the particle's planes
-        (:meth:`_shape_params_shift` there), or None where the calibration has no dimmed refits
-        or the spots no background."""
-        if "background" not in cols or "dim0_wx" not in self.traces.data:
-            return None
-        planes = self.local.z_nm[p]
-        n, n_z = planes.shape
-        rows = {name: np.repeat(cols[name], n_z) for name in ("amplitude", "background")}
-        index = np.tile(np.arange(n_z), n)
-        shift = self._shape_params_shift(rows, np.repeat(p, n_z), planes.ravel(), index)
-        return shift.reshape(n, n_z, 3)
+        (:func:`~latentz.calibration.spot_columns.spot_arrays`), weighted by the covariance of
+        their fits (:func:`~latentz.calibration.readout.shape_covariance`: their ``*_err`` and
+        ``*_corr`` columns where they carry them) times :attr:`noise_scale` squared; ``shift``
+        (n, 3), if given, is taken off their fitted wx, wy, ρ, or (n, planes, 3) off them at each
+        of the particle's planes."""
+        return joint_readout(self, cols, p, shift, z_only=z_only)
 
     def z_beyond_range(self, spots: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
         """Where one emitter beyond the calibrated range would be: for spots (a fit table: x, y,
@@ -985,27 +469,7 @@ class Calibration:
         (:meth:`joint_readout`, brightness-corrected) where it lies outside that particle's
         monotonic range (NaN elsewhere), and the particle. The calibration imaged its own
         particles there: far from focus a real PSF is a ring that one Gaussian fits poorly."""
-        cols = _spot_arrays(spots)
-        located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
-        p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
-        z = self._joint_shape(cols, p)[1].z_nm
-        lo, hi = self.local.shapes[self.shape].z_range[p].T
-        with np.errstate(invalid="ignore"):
-            outside = located & ((z < lo) | (z > hi))
-        return np.where(outside, z, np.nan), p
-
-    def _shape_at(self, p: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """The shape value whose inverse z(s) of particle ``p`` gives ``z`` (nm): Newton steps
-        on z(s) from the forward model s(z); NaN where z is outside the inverse's range."""
-        model = self.local.shapes[self.shape]
-        inverse, slope = model.inverse[p], self._error_model("z")[2][p]
-        target = np.where(np.isfinite(z), z, 0.0)
-        s = model.forward[p](target)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            for _ in range(4):
-                s = s - (inverse(s) - target) / slope(s)
-            hit = np.abs(inverse(s) - target) < 0.5
-        return np.where(np.isfinite(z) & hit & inverse.contains(s) & inverse.valid, s, np.nan)
+        return z_beyond_range(self, spots)
 
     def apply(
         self,
@@ -1069,321 +533,17 @@ class Calibration:
             A copy of ``spots`` with x_nm, y_nm, z_nm, x_err_nm, y_err_nm, z_err_nm (not with
             ``errors=False``), in_range and cal_particle (index of the calibration particle
             used). Outside that particle's calibrated range (its monotonic range, or widths
-            over :data:`BEYOND_WIDTH` times its curves' at the z read, or, with the one shape
-            value, fitted wx, wy, ρ nearest its curves beyond that range (:meth:`_past_turn`):
-            a spot beyond the range whose shape value mimics one inside it), z_nm and the
-            corrected positions are NaN and in_range is False.
+            over :data:`~latentz.calibration.placing.BEYOND_WIDTH` times its curves' at the z
+            read, or, with the one shape value, fitted wx, wy, ρ nearest its curves beyond that
+            range (:mod:`~latentz.calibration.placing`): a spot beyond the range whose shape
+            value mimics one inside it), z_nm and the corrected positions are NaN and in_range
+            is False.
         """
         if error_parts and not errors:
             raise ValueError("error_parts=True needs the errors: leave errors=True.")
         check_choice("lateral_reference", lateral_reference, ("place", "focus"))
-        placed = self._place(spots, amplitude_reference, z_readout)
+        placed = place(self, spots, amplitude_reference, z_readout)
         out = {"x_nm": placed.x_nm, "y_nm": placed.y_nm, "z_nm": placed.z}
         if errors:
-            out = self._errors(placed, z_readout, error_parts, lateral_reference == "place")
+            out = spot_errors(self, placed, z_readout, error_parts, lateral_reference == "place")
         return with_columns(spots, out | {"in_range": placed.in_range, "cal_particle": placed.p})
-
-    def _place(self, spots: pd.DataFrame, amplitude_reference: str, z_readout: str) -> _Placed:
-        """Where :meth:`apply` puts ``spots`` (its checks first), before their errors."""
-        check_columns("spots", spots, SPOT_COLUMNS)
-        check_roi_size(spots.attrs.get("roi_size"), self.roi_size)
-        cols = _spot_arrays(spots)
-        check_widths(np.column_stack([cols["wx"], cols["wy"]]), self.width_range_px)
-        check_choice("amplitude_reference", amplitude_reference, ("calibration", "particle"))
-        check_choice("z_readout", z_readout, Z_READOUTS)
-        # a spot with any non-finite fit value is a broken fit: never in range
-        located = np.logical_and.reduce([np.isfinite(cols[c]) for c in SPOT_COLUMNS])
-        p = self.nearest(np.where(located, cols["x"], 0.0), np.where(located, cols["y"], 0.0))
-        ref, ref_scatter = self._amplitude_reference(spots, cols, p, amplitude_reference)
-        joint = None
-        if z_readout == "joint":
-            s, joint = self._joint_shape(cols, p)
-            ref_scatter = 0.0  # z does not use the amplitude
-        else:
-            s = shape_value(self.shape, cols["wx"], cols["wy"], cols["rho"], cols["amplitude"],
-                            theta=self.local.theta, amplitude_ref=ref)  # fmt: skip
-        z, shifts, in_range = self._locate(s, p, cols, located)
-        if joint is None and "background" in cols and "dim0_wx" in self.traces.data:
-            s = s - self._dimming_shift(cols["amplitude"], cols["background"], p, z, ref)
-            z, shifts, in_range = self._locate(s, p, cols, located)
-        in_range &= ~self._beyond_range(cols, p, z)
-        if joint is None:
-            in_range &= ~self._past_turn(cols, p, np.where(in_range, z, np.nan))
-        z = np.where(in_range, z, np.nan)
-        px = self.camera.pixel_size_nm
-        dimmed = None  # the spot's own brightness moves its fitted centre (coma)
-        if "background" in cols and "dim0_dx" in self.traces.data:
-            dimmed = self._position_shifts(cols["amplitude"], cols["background"], p, z)
-        place = {}
-        for axis, delta in (("x", self.local.dx), ("y", self.local.dy)):
-            shift = delta[p](np.where(in_range, z, 0.0)) if shifts is None else shifts[axis]
-            if dimmed is not None:
-                shift = shift + dimmed[axis]
-            place[axis] = np.where(in_range, (cols[axis] - shift) * px, np.nan)
-        return _Placed(cols, p, s, z, in_range, place["x"], place["y"], joint, ref, ref_scatter)
-
-    def _errors(self, placed: _Placed, z_readout: str, error_parts: bool,
-                reference: bool) -> dict[str, np.ndarray]:  # fmt: skip
-        """:meth:`apply`'s columns of the ``placed`` spots, their places with their errors
-        (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm, z_nm, z_err_nm, and with
-        ``error_parts`` z_err_fit_nm and z_err_field_nm; laterally with the particles' own
-        reference (``reference``) or without."""
-        cols, p, z, in_range = placed.cols, placed.p, placed.z, placed.in_range
-        distance = np.hypot(*(np.column_stack([cols["x"], cols["y"]]) - self.positions[p]).T)
-        at = row_weights(self.local.z_nm, p, z)
-        z_err, z_fit = self._z_error(cols, placed.s, p, z, in_range, at, placed.ref,
-                                     placed.ref_scatter, placed.joint)  # fmt: skip
-        out = {}
-        for axis, place in (("x", placed.x_nm), ("y", placed.y_nm)):
-            err = self._lateral_error(axis, cols, p, z, in_range, at, z_err, distance)
-            if reference:
-                err = combine(err, self.reference_sigma_nm(axis))
-            out[f"{axis}_nm"] = place
-            out[f"{axis}_err_nm"] = np.where(in_range, err, np.nan)
-        out["z_nm"] = z
-        z_field = self._z_field_error(cols, z, distance, z_readout)
-        out["z_err_nm"] = np.where(in_range, combine(z_err, z_field), np.nan)
-        if error_parts:
-            out["z_err_fit_nm"] = np.where(in_range, z_fit, np.nan)
-            out["z_err_field_nm"] = np.where(in_range, z_field, np.nan)
-        return out
-
-    def _beyond_range(self, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """(n,) spots at z (nm) on particles ``p`` whose mean fitted width (``cols``' wx, wy,
-        px) exceeds :data:`BEYOND_WIDTH` times the particle's curves at z (:meth:`curves_at`):
-        spots past the end of the monotonic range whose shape value mimics one inside it."""
-        found = np.isfinite(z)
-        out = np.zeros(z.size, dtype=bool)
-        if found.any():
-            c = self.curves_at(p[found], z[found])
-            width = np.abs(cols["wx"][found]) + np.abs(cols["wy"][found])
-            with np.errstate(invalid="ignore"):
-                out[found] = width > BEYOND_WIDTH * (np.abs(c["wx"]) + np.abs(c["wy"]))
-        return out
-
-    def _z_field_error(self, cols: dict, z: np.ndarray, distance: np.ndarray,
-                       readout: str) -> np.ndarray:  # fmt: skip
-        """The part of σ_z (nm) that varies across the field, as held-out particles measure
-        it: the field model's cross-validated error with the dimming correction's transfer
-        (at the spot's background ratio c), or, where larger, the error of held-out particles
-        seen as emitters of that c and localized by neighbours as far away as the spot is from
-        its particle with the z ``readout`` (:meth:`_pair_sigma`). That is ``nearest``'s error
-        (with the joint readout, the pairs' alone: the cross-validation and the transfer are
-        the shape value's, and the pairs hold both for the joint readout): for another field
-        model it counts only beyond the distances its cross-validation held out (above their
-        90th percentile), where the model extrapolates; ``cols``: the spots' columns
-        (:func:`_spot_arrays`)."""
-        c_spot = None
-        if "background" in cols and "dim0_wx" in self.traces.data:
-            c_spot = background_ratio(cols["background"], cols["amplitude"],
-                                      self.camera.readnoise)  # fmt: skip
-        pair = self._pair_sigma(z, c_spot, distance, readout)
-        if readout == "joint" and self.field_model == "nearest":
-            return pair
-        field = self._field_sigma("z", z, distance)
-        if c_spot is not None:
-            field = combine(field, self._transfer_sigma(z, c_spot))
-        pair = np.fmax(field, pair)
-        if self.field_model == "nearest":
-            return pair
-        held = self.crossval_of(self.field_model)["distance_px"].to_numpy()
-        return np.where(distance > np.quantile(held, 0.9), pair, field)
-
-    def _amplitude_reference(
-        self, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
-    ) -> tuple[np.ndarray, float]:
-        """Each spot's A_{ρ=ρ0} for the shape value (:meth:`apply`'s ``amplitude_reference``),
-        and the relative scatter of the calibration particles' reference about it."""
-        shape = self.shape
-        if uses_amplitude(shape) and amplitude_reference == "particle":
-            check_columns("spots", spots, ("particle",))
-            return _track_reference(shape, spots, cols, self.local.theta), 0.0
-        if uses_amplitude(shape):  # the reference about the spot's nearest particle
-            return self._particle_references()[p], self.reference_field.scatter
-        return self.local.shapes[shape].amplitude_ref[p], 0.0
-
-    def _z_error(
-        self,
-        cols: dict[str, np.ndarray],
-        s: np.ndarray,
-        p: np.ndarray,
-        z: np.ndarray,
-        in_range: np.ndarray,
-        at: tuple[np.ndarray, np.ndarray, np.ndarray],
-        ref: np.ndarray,
-        ref_scatter: float,
-        joint: JointZ | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """σ_z (nm) before the field model's part: the spot's own (propagated from its fit
-        errors where it carries them, else the calibration's at z) with the particle's model
-        error, and the amplitude reference's scatter; and the fit's part alone (NaN where the
-        spots carry no fit errors). With the ``joint`` readout, the fit's part is its σ or,
-        where larger, its spread over a second minimum; with either readout, at most the
-        likelihood's width over the particle's range (:meth:`_profile_bound`). ``cols``: the
-        spots' columns (:func:`_spot_arrays`), NaN for a correlation they lack."""
-        model_part = self._model_sigma("z", p, z, at)
-        fit_part = np.full(len(s), np.nan)
-        if all(c in cols for c in _ERROR_COLUMNS):
-            if joint is None:  # scaled about each z (noise_scale_by_z)
-                params, errors = _stacked(cols, _PARAMS), _stacked(cols, _ERROR_COLUMNS)
-                fit_part = self._noise_scale_at(z) * self._fit_part_z(
-                    params, errors, _stacked(cols, CORRELATION_COLUMNS), p,
-                    np.where(in_range, s, 0.0), ref)  # fmt: skip
-            else:  # its fit covariance already scaled by noise_scale (joint_readout)
-                fit_part = np.fmax(joint.sigma_nm, joint.spread_nm)
-            fit_part = self._profile_bound(cols, p, np.where(in_range, z, np.nan), fit_part)
-            z_err = np.hypot(fit_part, model_part)
-        else:
-            z_err = interp_rows(self.local.z_nm, self._error_model("z")[0], p, z, at)
-        if ref_scatter > 0:  # s ∝ A_ref: an error δ in ln A_ref moves s by s·δ; NaN: unknown
-            s_in = np.where(in_range, s, 0.0)
-            z_err = combine(z_err, self._through_inverse(p, s_in, np.abs(s_in) * ref_scatter))
-        return z_err, fit_part
-
-    def _lateral_error(
-        self,
-        axis: str,
-        cols: dict,
-        p: np.ndarray,
-        z: np.ndarray,
-        in_range: np.ndarray,
-        at: tuple[np.ndarray, np.ndarray, np.ndarray],
-        z_err: np.ndarray,
-        distance: np.ndarray,
-    ) -> np.ndarray:
-        """σ of the corrected ``axis`` position (nm) of the spots of columns ``cols``: the
-        spot's own, the particle's model error and lack of fit, its σ_z before the field's part
-        (``z_err``; the field's reaches x, y in the field model's held-out errors) through the
-        particle's correction (:func:`~latentz.calibration.errors.spread_through` over the z
-        where a spot in range lies, :meth:`in_range_window`: the width that holds 68 % of the
-        normal's weight, not the RMS, which the curve's steep ends rule), the field model's
-        (:meth:`_field_sigma`); the particles' own reference (:meth:`reference_sigma_nm`) is
-        :meth:`apply`'s to add."""
-        px = self.camera.pixel_size_nm
-        model = self.local.dx if axis == "x" else self.local.dy
-        z_in = np.where(in_range, z, 0.0)
-        from_z = spread_through(model[p], z_in, np.where(in_range, z_err, 0.0),
-                                self.in_range_window(p, z_in), covering=True)  # fmt: skip
-        model_d = self._model_sigma(axis, p, z, at)
-        if f"{axis}_err" in cols:
-            own = cols[f"{axis}_err"]
-        else:
-            own = interp_rows(self.local.z_nm, self._error_model(axis)[0], p, z, at)
-        field_d = self._field_sigma(axis, z, distance)  # nm
-        lack = interp_rows(self.local.z_nm, self._lack_of_fit(axis), p, z, at)
-        return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
-
-
-def _range_width(window: np.ndarray) -> np.ndarray:
-    """What a spot's range ``window`` ((n, 2), nm) alone says of its z: the 68 % half-width
-    (nm) of a uniform z over it, about its middle."""
-    return ONE_SIGMA * (window[:, 1] - window[:, 0]) / 2
-
-
-def _spot_arrays(spots: pd.DataFrame) -> dict[str, np.ndarray]:
-    """The spots' columns that :meth:`Calibration.apply` reads (:data:`_READ_COLUMNS`, those
-    the table has) as float64 arrays, each read once."""
-    return {c: spots[c].to_numpy(dtype=np.float64) for c in _READ_COLUMNS if c in spots.columns}
-
-
-class _Placed(NamedTuple):
-    """Where :meth:`Calibration.apply` puts spots, and what their errors read: the spots'
-    columns ``cols`` (:func:`_spot_arrays`), nearest particles ``p``, shape values ``s``, ``z``
-    (nm, NaN out of range), ``in_range``, the corrected ``x_nm``, ``y_nm``, the joint readout
-    (None with the one shape value) and the amplitude reference ``ref`` with its relative
-    scatter."""
-
-    cols: dict[str, np.ndarray]
-    p: np.ndarray
-    s: np.ndarray
-    z: np.ndarray
-    in_range: np.ndarray
-    x_nm: np.ndarray
-    y_nm: np.ndarray
-    joint: JointZ | None
-    ref: np.ndarray
-    ref_scatter: float
-
-
-def _stacked(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray:
-    """(n, len(names)) of the arrays ``cols`` under ``names``, NaN for a name it lacks."""
-    n = len(cols["x"])
-    return np.column_stack([cols[name] if name in cols else np.full(n, np.nan) for name in names])
-
-
-def _interp_levels(log_c: np.ndarray, by_level: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
-    """Values ``by_level`` (levels, spots) at each spot's ratio ``c_spot``: linear in log c
-    between the levels ``log_c`` (ascending), held at the ends; the lowest where c is unknown."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.log(np.asarray(c_spot, dtype=np.float64))
-    x = np.clip(np.where(np.isfinite(x), x, log_c[0]), log_c[0], log_c[-1])
-    j = np.clip(np.searchsorted(log_c, x), 1, log_c.size - 1)
-    t = (x - log_c[j - 1]) / (log_c[j] - log_c[j - 1])
-    spots = np.arange(x.size)
-    return (1 - t) * by_level[j - 1, spots] + t * by_level[j, spots]
-
-
-def _track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.ndarray:
-    """A_{ρ=ρ0} of each spot's own track: the amplitude of its spot with the smallest |ρ|
-    (or |e_θ| for "auto_A")."""
-    base = np.abs(
-        shape_value(
-            "rho" if shape == "rho_A" else "auto", cols["wx"], cols["wy"], cols["rho"], theta=theta
-        )
-    )
-    if shape == "auto_A":
-        base = base / ((np.abs(cols["wx"]) + np.abs(cols["wy"])) / 2)
-    frame = pd.DataFrame(
-        {"track": spots["particle"].to_numpy(), "base": base, "amplitude": cols["amplitude"]}
-    )
-    best = frame.loc[frame.groupby("track")["base"].idxmin(), ["track", "amplitude"]]
-    lookup = dict(zip(best["track"], best["amplitude"], strict=True))
-    return frame["track"].map(lookup).to_numpy(dtype=np.float64)
-
-
-def _bridge_gaps(values: np.ndarray) -> np.ndarray:
-    """(n, n_z) ``values`` with each row's NaN planes given the previous finite plane's value
-    (leading ones the next's); rows with no finite value stay NaN."""
-    return pd.DataFrame(values.T).ffill().bfill().to_numpy().T
-
-
-def _particle_table(cal: Calibration) -> pd.DataFrame:
-    local, traces = cal.local, cal.traces
-    px = cal.camera.pixel_size_nm
-    pos = cal.positions
-    table = pd.DataFrame(
-        {
-            "particle": np.arange(len(traces)),
-            "stack": traces.stack,
-            "x": pos[:, 0],
-            "y": pos[:, 1],
-            "x_nm": pos[:, 0] * px,
-            "y_nm": pos[:, 1] * px,
-            "z_f": local.z_f + cal.plane(*(pos * px).T) + cal.heights_nm,
-            "z_f_nm": local.z_f,
-            "height_nm": cal.heights_nm,
-            "in_focus": local.in_focus,
-        }
-    )
-    for name, model in local.shapes.items():
-        table[f"sigma_z_{name}"] = row_mean(model.sigma_z)
-        table[f"z_min_{name}"] = model.z_range[:, 0]
-        table[f"z_max_{name}"] = model.z_range[:, 1]
-    table["sigma_z"] = table[f"sigma_z_{cal.shape}"]
-    table["z_min_nm"] = table[f"z_min_{cal.shape}"]
-    table["z_max_nm"] = table[f"z_max_{cal.shape}"]
-    table["sigma_dx_nm"] = row_mean(local.sigma_dx) * px
-    table["sigma_dy_nm"] = row_mean(local.sigma_dy) * px
-    table["culled"] = cal.culled
-    table["cull_reason"] = cal.reason
-    table["reason"] = cal.reason
-    for column in cal.scores.columns:
-        table[f"score_{column}"] = cal.scores[column].to_numpy()
-    model = local.shapes[cal.shape].inverse
-    table["z_coef"] = list(model.coef)
-    table["z_domain"] = list(model.domain)
-    table["dx_coef"] = list(local.dx.coef)
-    table["dy_coef"] = list(local.dy.coef)
-    table["lateral_domain_nm"] = list(local.dx.domain)
-    table["amplitude_coef"] = list(local.amplitude.coef)
-    return table
