@@ -260,10 +260,10 @@ def run_latentz(stack, truth, camera, z_nm, *, box):
     )
     t_cal = time.perf_counter() - t0
     t0 = time.perf_counter()
-    all_spots = localize(stack, camera=camera, roi_size=box, scheduler="threads")
-    out = _latentz_out(cal.apply(near(all_spots, truth, TEST_BEADS)))
+    all_spots = localize(stack, calibration=cal, scheduler="threads")
+    out = _latentz_out(near(all_spots, truth, TEST_BEADS))
     t_loc = time.perf_counter() - t0
-    return out, _latentz_out(cal.apply(near(all_spots, truth, CAL_BEADS))), t_cal, t_loc
+    return out, _latentz_out(near(all_spots, truth, CAL_BEADS)), t_cal, t_loc
 
 
 def _latentz_out(res):
@@ -411,7 +411,8 @@ def main():
         "puts the first frame at +z, so its z is negated. Its spline fitting needs a spline "
         "calibration that Picasso does not make, so it is not tried. latentz: extract_traces "
         "(detection) and calibrate_traces(shape='auto', field_model='nearest') on the selected "
-        "beads, localize and Calibration.apply, with one box for calibration and localization.",
+        "beads, then localize(stack, calibration=cal), as a user localizes with a calibration "
+        "(one box for both).",
         f"Settings: each tool's defaults; one common box of {COMMON_BOX} px, which holds the "
         "~10 px defocused beads, for both; and each tool's best, searched over boxes "
         f"{BOXES} (Picasso also over net gradients {PICASSO_MIN_NG} and {PICASSO_METHODS}) and "
