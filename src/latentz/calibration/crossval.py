@@ -41,7 +41,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["CROSSVAL_COLUMNS", "LOST_SHARE", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS",
            "crossval", "choose_field_model", "crossval_summary", "emitter_sigma_z",
@@ -66,13 +66,13 @@ LOST_SHARE = 0.5
 TYPICAL_PHOTONS = 1e4
 
 
-def _subset(cal: Calibration, keep: np.ndarray, kind: str) -> Any:
+def _subset(cal: CalibrationView, keep: np.ndarray, kind: str) -> Any:
     """The calibration restricted to the particles ``keep`` (bool, n) with field model ``kind``."""
     options = {**cal.options, "field_model": kind}
     return replace(cal, culled=cal.culled | ~keep, options=options, _cache={})
 
 
-def predict(cal: Calibration, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tuple:
+def predict(cal: CalibrationView, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray) -> tuple:
     """z (nm), Δx', Δy' (px) and in_range for shape values ``s`` at (x, y) with ``cal``'s field
     model, as :meth:`Calibration.apply` computes them."""
     wide = cal.widefield
@@ -86,7 +86,7 @@ def predict(cal: Calibration, x_px: np.ndarray, y_px: np.ndarray, s: np.ndarray)
     return z, cal.local.dx[p](zq), cal.local.dy[p](zq), ok
 
 
-def _held_out_planes(cal: Calibration, particles: np.ndarray) -> pd.DataFrame:
+def _held_out_planes(cal: CalibrationView, particles: np.ndarray) -> pd.DataFrame:
     """Every plane of each particle's monotonic range whose measured shape value its own inverse
     model covers (noise takes the end planes' values past it): its z, that s (a local cubic over
     :data:`_SMOOTH_PLANES` planes, where the particle has a value at every plane) and
@@ -123,7 +123,7 @@ def _smoothed(values: np.ndarray) -> np.ndarray:
     return np.isfinite(values).all(axis=1) & (values.shape[1] >= _SMOOTH_PLANES)
 
 
-def smoothed_noise(cal: Calibration, particles: np.ndarray) -> np.ndarray:
+def smoothed_noise(cal: CalibrationView, particles: np.ndarray) -> np.ndarray:
     """(n,) the share of a held-out particle's own noise in s (1σ) left in its held-out
     shape values: the local cubic's centre weights' root sum of squares (0.58) where
     :func:`_held_out_planes` smooths them, else 1."""
@@ -133,7 +133,7 @@ def smoothed_noise(cal: Calibration, particles: np.ndarray) -> np.ndarray:
 
 
 def crossval(
-    cal: Calibration,
+    cal: CalibrationView,
     kinds: tuple[str, ...] = ("nearest", "natural", "curves", "zernike"),
     *,
     n_groups: int = 16,
@@ -196,7 +196,7 @@ def crossval(
 
 
 def emitter_sigma_z(
-    cal: Calibration, table: pd.DataFrame, photons: float = TYPICAL_PHOTONS
+    cal: CalibrationView, table: pd.DataFrame, photons: float = TYPICAL_PHOTONS
 ) -> np.ndarray:
     """σ_z (nm) of an emitter of ``photons`` photons imaged like each row's held-out particle at
     that plane (:func:`~latentz.calibration.precision.crlb_sigma_z`); NaN where unknown."""
@@ -268,7 +268,7 @@ def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
     return str(eligible[rank].idxmin())
 
 
-def resolve_auto(cal: Calibration) -> str:
+def resolve_auto(cal: CalibrationView) -> str:
     """``field_model="auto"``: the model :func:`choose_field_model` picks from ``cal.crossval``;
     "nearest", with a warning, below :data:`MIN_FIELD_PARTICLES` kept particles."""
     if cal.kept.size < MIN_FIELD_PARTICLES:

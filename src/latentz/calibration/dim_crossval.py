@@ -42,7 +42,7 @@ from latentz.calibration.rows import interp_rows, row_weights
 from latentz.calibration.shape import shape_value
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["PAIR_RANKS", "TRANSFER_BIN_NM", "dim_held_out", "pair_table", "transfer_sigma"]
 
@@ -55,7 +55,7 @@ PAIR_RANKS = (1, 2, 3, 4)
 _PAIR_COLUMNS = ("c", "model", "particle", "z_nm", "distance_px", "err_z_nm", "in_range")
 
 
-def _partners(cal: Calibration, rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _partners(cal: CalibrationView, rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The kept particles with a valid inverse model, the ``rank``-th nearest other one of
     each, and its distance (px); all empty where there are no more than ``rank`` of them."""
     rows = cal.kept[cal.local.shapes[cal.shape].inverse.valid[cal.kept]]
@@ -66,7 +66,7 @@ def _partners(cal: Calibration, rank: int) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def dim_held_out(
-    cal: Calibration, *, ratio: float, rank: int = 1, readout: str = "shape"
+    cal: CalibrationView, *, ratio: float, rank: int = 1, readout: str = "shape"
 ) -> np.ndarray:
     """(n, n_z) z error (nm) of an emitter of background ratio ``ratio`` = (b + readnoise²) / A
     imaged like each kept particle at each plane, localized
@@ -133,7 +133,7 @@ def dim_held_out(
     return errors
 
 
-def _joint_estimate(cal: Calibration, p: np.ndarray, fitted: np.ndarray, amplitude: np.ndarray,
+def _joint_estimate(cal: CalibrationView, p: np.ndarray, fitted: np.ndarray, amplitude: np.ndarray,
                     background: np.ndarray) -> np.ndarray:  # fmt: skip
     """z (nm) of held-out images of fitted (wx, wy, ρ) ``fitted`` (m, 3), peak ``amplitude``
     and ``background`` (photoelectrons per pixel) read jointly on particles ``p``'s curves
@@ -148,7 +148,7 @@ def _joint_estimate(cal: Calibration, p: np.ndarray, fitted: np.ndarray, amplitu
     return joint_z(cal.curves_at, cal.local.z_nm, no_scatter, p, fitted, cov).z_nm
 
 
-def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def transfer_sigma(cal: CalibrationView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How much the dimming correction errs when it is carried from the nearest particle to a
     spot: ``(z_nm, log_c, sigma_nm)``, the RMS over the kept particles of the held-out error at
     background ratio c (each of :data:`~latentz.calibration.dimming.LEVELS`) minus that of the
@@ -181,7 +181,7 @@ def transfer_sigma(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return np.array(centres), np.log(np.asarray(LEVELS)), np.array(sigmas).T
 
 
-def _judged(cal: Calibration, errors: np.ndarray, rank: int) -> np.ndarray:
+def _judged(cal: CalibrationView, errors: np.ndarray, rank: int) -> np.ndarray:
     """:func:`dim_held_out`'s ``errors`` (n, n_z) at ``rank``, NaN where a held-out plane does
     not count: outside the held-out particle's monotonic range (as crossval holds out) or with
     its estimate outside the span its partner was imaged over (as ``apply`` requires). There
@@ -200,7 +200,7 @@ def _judged(cal: Calibration, errors: np.ndarray, rank: int) -> np.ndarray:
     return out
 
 
-def pair_table(cal: Calibration, readout: str = "shape") -> pd.DataFrame:
+def pair_table(cal: CalibrationView, readout: str = "shape") -> pd.DataFrame:
     """Held-out z errors of each kept particle seen as an emitter at each background ratio c of
     :data:`~latentz.calibration.dimming.LEVELS` (only the bright image where there are no
     refits) and localized by each of its :data:`PAIR_RANKS` nearest other particles

@@ -21,12 +21,12 @@ from latentz.calibration.fieldmodels import FieldModel, field_errors
 from latentz.calibration.widefield import MIN_PARTICLES, covered_span
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["evaluate", "evaluate_figures", "crossval_report"]
 
 
-def _columns(cal: Calibration, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _columns(cal: CalibrationView, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per axis: (values (n_kept, m) in nm, the z (nm) of each column)."""
     kept = cal.kept
     planes = cal.local.z_nm[kept]  # each particle's plane positions, tilt-corrected nm
@@ -45,7 +45,7 @@ def _columns(cal: Calibration, n_z: int, n_s: int) -> dict[str, tuple[np.ndarray
 
 
 def evaluate(
-    cal: Calibration,
+    cal: CalibrationView,
     *,
     kinds: tuple[str, ...] = FIELD_MODELS,
     n_z: int = 41,
@@ -93,7 +93,7 @@ def _evaluate(cal, kinds, n_z, n_s, leave_one_out):
     return pd.concat(parts, ignore_index=True), residuals
 
 
-def evaluate_figures(cal: Calibration, *, n_z: int = 41, n_s: int = 81) -> dict[str, Any]:
+def evaluate_figures(cal: CalibrationView, *, n_z: int = 41, n_s: int = 81) -> dict[str, Any]:
     """Fig. 5 (RMS error against z per model and axis, square and circle), Supp. Figs. 11–14
     (error maps and histograms with their excess kurtosis) and Fig. 4 (vector map of the
     apparent lateral motion between two z, and the surface of best focus); the errors on
@@ -153,7 +153,7 @@ def evaluate_figures(cal: Calibration, *, n_z: int = 41, n_s: int = 81) -> dict[
     }
 
 
-def _figure_error_distributions(cal: Calibration, errors: pd.DataFrame, residuals: dict) -> Any:
+def _figure_error_distributions(cal: CalibrationView, errors: pd.DataFrame, residuals: dict) -> Any:
     """Per model (rows): the map of each particle's RMS z error over the columns (Supp. Figs.
     11, 13), and histograms of the x, y, z errors of the square field and of the circular subset
     (Supp. Figs. 12, 14), labelled with the mean over z of each column's excess kurtosis and its
@@ -213,7 +213,7 @@ def _figure_error_distributions(cal: Calibration, errors: pd.DataFrame, residual
     return fig
 
 
-def crossval_report(cal: Calibration, *, bin_nm: float = 250.0) -> tuple[pd.DataFrame, Any]:
+def crossval_report(cal: CalibrationView, *, bin_nm: float = 250.0) -> tuple[pd.DataFrame, Any]:
     """The cross-validated errors of every field model side by side (``cal.crossval``), with
     the field part of the uncertainty that ``apply`` reports for the chosen model.
 

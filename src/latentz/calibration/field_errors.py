@@ -19,12 +19,12 @@ from latentz.calibration.local_errors import model_sigma
 from latentz.calibration.noise_scale import calibration_scatter, noise_scale_at
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["field_sigma", "z_field_error"]
 
 
-def z_field_error(cal: Calibration, cols: dict, z: np.ndarray, distance: np.ndarray,
+def z_field_error(cal: CalibrationView, cols: dict, z: np.ndarray, distance: np.ndarray,
                   readout: str) -> np.ndarray:  # fmt: skip
     """The part of σ_z (nm) that varies across the field, as held-out particles measure
     it: the field model's cross-validated error with the dimming correction's transfer
@@ -53,7 +53,7 @@ def z_field_error(cal: Calibration, cols: dict, z: np.ndarray, distance: np.ndar
     return np.where(distance > np.quantile(held, 0.9), pair, field)
 
 
-def field_sigma(cal: Calibration, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
+def field_sigma(cal: CalibrationView, axis: str, z: np.ndarray, distance: np.ndarray) -> np.ndarray:
     """The field model's 1σ (nm) on ``axis`` (:func:`~latentz.calibration.errors.
     field_sigma`) at z (nm) ``distance`` px from the particle, less the local models' part of
     the held-out errors and, laterally, the held-out particles' own z noise carried through Δ
@@ -64,7 +64,7 @@ def field_sigma(cal: Calibration, axis: str, z: np.ndarray, distance: np.ndarray
     return line.sigma(z, distance)
 
 
-def _carried_noise(cal: Calibration, held_out: pd.DataFrame, axis: str) -> np.ndarray:
+def _carried_noise(cal: CalibrationView, held_out: pd.DataFrame, axis: str) -> np.ndarray:
     """(rows,) nm: how far the held-out particles' own z noise moves their lateral
     ``axis`` error (:func:`~latentz.calibration.crossval.crossval` reads Δx', Δy' at the
     predicted z): the fit's part of σ_z of each held-out image (as
@@ -91,7 +91,7 @@ def _carried_noise(cal: Calibration, held_out: pd.DataFrame, axis: str) -> np.nd
                                                      covering=True)  # fmt: skip
 
 
-def _held_out_line(cal: Calibration, table: Callable[[], pd.DataFrame], kind: str, axis: str,
+def _held_out_line(cal: CalibrationView, table: Callable[[], pd.DataFrame], kind: str, axis: str,
                    key: str, local_models: bool = True) -> FieldLine:  # fmt: skip
     """The :class:`~latentz.calibration.errors.FieldLine` of the held-out errors
     ``table()`` with the local models' σ at its rows (``local_models``; False: errors not
@@ -110,7 +110,7 @@ def _held_out_line(cal: Calibration, table: Callable[[], pd.DataFrame], kind: st
     return cal._cache[key]
 
 
-def _pair_sigma(cal: Calibration, z: np.ndarray, c_spot: np.ndarray | None,
+def _pair_sigma(cal: CalibrationView, z: np.ndarray, c_spot: np.ndarray | None,
                 distance: np.ndarray, readout: str = "shape") -> np.ndarray:  # fmt: skip
     """1σ (nm) of the z error of spots at ``z`` of background ratio ``c_spot`` (None: as
     bright as the calibration) ``distance`` px from the particle that localizes them, from
@@ -135,7 +135,7 @@ def _pair_sigma(cal: Calibration, z: np.ndarray, c_spot: np.ndarray | None,
     return _interp_levels(np.log(levels), by_level, c_spot)
 
 
-def _transfer_sigma(cal: Calibration, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
+def _transfer_sigma(cal: CalibrationView, z: np.ndarray, c_spot: np.ndarray) -> np.ndarray:
     """1σ (nm) of the dimming correction carried from the nearest particle to spots at
     ``z`` of background ratio ``c_spot``, measured on held-out particles
     (:func:`~latentz.calibration.dim_crossval.transfer_sigma`): linear in z between its

@@ -16,13 +16,13 @@ from latentz.calibration.spot_columns import ERROR_COLUMNS, PARAMS, stacked
 from latentz.fit.api import CORRELATION_COLUMNS
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["joint_readout", "joint_shape", "shape_fit"]
 
 
 def joint_readout(
-    cal: Calibration, cols: dict[str, np.ndarray], p: np.ndarray,
+    cal: CalibrationView, cols: dict[str, np.ndarray], p: np.ndarray,
     shift: np.ndarray | None = None, *, z_only: bool = False,
 ) -> JointZ:  # fmt: skip
     """:meth:`~latentz.calibration.result.Calibration.joint_readout`: the joint readout of
@@ -35,7 +35,7 @@ def joint_readout(
                    z_only=z_only)  # fmt: skip
 
 
-def shape_fit(cal: Calibration, cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def shape_fit(cal: CalibrationView, cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The fitted (wx, wy, ρ) (n, 3) of the spots of columns ``cols`` and their covariance
     (n, 3, 3) times :attr:`~latentz.calibration.result.Calibration.noise_scale` squared
     (:func:`~latentz.calibration.readout.shape_covariance`: their ``*_err`` and ``*_corr``
@@ -49,7 +49,7 @@ def shape_fit(cal: Calibration, cols: dict[str, np.ndarray]) -> tuple[np.ndarray
     return params[:, 4:7], cal.noise_scale**2 * cov
 
 
-def joint_shape(cal: Calibration, cols: dict, p: np.ndarray) -> tuple[np.ndarray, JointZ]:
+def joint_shape(cal: CalibrationView, cols: dict, p: np.ndarray) -> tuple[np.ndarray, JointZ]:
     """The joint readout of the spots of columns ``cols`` and the shape value of its z
     (:func:`_shape_at`). Where the calibration has dimmed refits, the readout is repeated
     with the fitted wx, wy, ρ corrected for the spots' background ratio
@@ -62,7 +62,7 @@ def joint_shape(cal: Calibration, cols: dict, p: np.ndarray) -> tuple[np.ndarray
     return _shape_at(cal, p, joint.z_nm), joint
 
 
-def _shape_at(cal: Calibration, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+def _shape_at(cal: CalibrationView, p: np.ndarray, z: np.ndarray) -> np.ndarray:
     """The shape value whose inverse z(s) of particle ``p`` gives ``z`` (nm): Newton steps
     on z(s) from the forward model s(z); NaN where z is outside the inverse's range."""
     model = cal.local.shapes[cal.shape]

@@ -13,12 +13,12 @@ from latentz.calibration.particle_curves import bridge_gaps
 from latentz.calibration.rows import interp_rows
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["error_model", "lack_of_fit", "model_sigma"]
 
 
-def error_model(cal: Calibration, axis: str) -> tuple[np.ndarray, np.ndarray, Any]:
+def error_model(cal: CalibrationView, axis: str) -> tuple[np.ndarray, np.ndarray, Any]:
     """For "z" (the calibration's shape), "x" or "y": each particle's residual σ (n, n_z)
     with gaps bridged by the nearest finite value, its count of finite values (n,), and for
     "z" the derivative of its inverse z(s) (None for "x" and "y"); computed once."""
@@ -35,7 +35,7 @@ def error_model(cal: Calibration, axis: str) -> tuple[np.ndarray, np.ndarray, An
     return cal._cache[key]
 
 
-def lack_of_fit(cal: Calibration, axis: str) -> np.ndarray:
+def lack_of_fit(cal: CalibrationView, axis: str) -> np.ndarray:
     """For "x" or "y": each particle's lack of fit (px, (n, n_z)), the part of its
     residual σ about Δx'(z), Δy'(z) that its traces' own fit errors do not explain:
     ``sqrt(max(σ_res² − σ_fit², 0))``, both as RMS over the local models' sliding window.
@@ -60,7 +60,7 @@ def lack_of_fit(cal: Calibration, axis: str) -> np.ndarray:
 
 
 def model_sigma(
-    cal: Calibration, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
+    cal: CalibrationView, axis: str, p: np.ndarray, z: np.ndarray, at: tuple | None = None
 ) -> np.ndarray:
     """1σ (px for "x", "y"; nm for "z") of particle ``p``'s local model of ``axis`` at z:
     its residual σ at that z over the square root of its planes per polynomial parameter

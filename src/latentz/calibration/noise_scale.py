@@ -13,13 +13,13 @@ from latentz.calibration.spot_columns import ERROR_COLUMNS, PARAMS
 from latentz.fit.api import CORRELATION_COLUMNS
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["calibration_scatter", "fit_part_z", "noise_scale", "noise_scale_at",
            "noise_scale_by_z", "through_inverse"]  # fmt: skip
 
 
-def fit_part_z(cal: Calibration, params: np.ndarray, errors: np.ndarray,
+def fit_part_z(cal: CalibrationView, params: np.ndarray, errors: np.ndarray,
                corr: np.ndarray | None, p: np.ndarray, s: np.ndarray,
                ref: np.ndarray) -> np.ndarray:  # fmt: skip
     """The fit's part of z_err (nm) of spots with fitted ``params`` (n, 7), their ``errors``
@@ -32,7 +32,7 @@ def fit_part_z(cal: Calibration, params: np.ndarray, errors: np.ndarray,
     return through_inverse(cal, p, s, sigma_s)
 
 
-def through_inverse(cal: Calibration, p: np.ndarray, s: np.ndarray,
+def through_inverse(cal: CalibrationView, p: np.ndarray, s: np.ndarray,
                     sigma_s: np.ndarray) -> np.ndarray:  # fmt: skip
     """1σ (nm) of z of shape values ``s`` with errors ``sigma_s`` on particles ``p``'s
     inverse z(s): its spread over s ± σ_s within the inverse's domain, each z held within
@@ -45,7 +45,7 @@ def through_inverse(cal: Calibration, p: np.ndarray, s: np.ndarray,
 
 
 def calibration_scatter(
-    cal: Calibration,
+    cal: CalibrationView,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The kept particles' calibration images (k, n_z) about their inverse z(s): z (nm),
     residual (nm), the fit's part of ``z_err_nm`` that :meth:`~latentz.calibration.result.
@@ -75,7 +75,7 @@ def calibration_scatter(
     return cal._cache["calibration_scatter"]
 
 
-def noise_scale(cal: Calibration) -> float:
+def noise_scale(cal: CalibrationView) -> float:
     """:attr:`~latentz.calibration.result.Calibration.noise_scale`: the kept particles'
     usable calibration images against their own fit errors
     (:func:`~latentz.calibration.errors.measured_noise`); 1 for traces without fit errors."""
@@ -92,7 +92,7 @@ def noise_scale(cal: Calibration) -> float:
     return cal._cache["noise_scale"]
 
 
-def noise_scale_by_z(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+def noise_scale_by_z(cal: CalibrationView) -> tuple[np.ndarray, np.ndarray]:
     """:attr:`~latentz.calibration.result.Calibration.noise_scale_by_z`: z (nm, ascending)
     and the factor there, from every image's residual over its fit's part, corrected for its
     leverage (:func:`~latentz.calibration.errors.noise_by_z`); empty where
@@ -109,7 +109,7 @@ def noise_scale_by_z(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
     return cal._cache["noise_scale_by_z"]
 
 
-def noise_scale_at(cal: Calibration, z: np.ndarray) -> np.ndarray:
+def noise_scale_at(cal: CalibrationView, z: np.ndarray) -> np.ndarray:
     """The factor on the fit's part of ``z_err_nm`` at tilt-corrected z (nm):
     :func:`noise_scale_by_z` there (held beyond its ends), or :func:`noise_scale` where that
     is empty."""

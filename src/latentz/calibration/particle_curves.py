@@ -14,12 +14,12 @@ from latentz.calibration.readout import SHAPE_PARAMS
 from latentz.calibration.rows import interp_rows, row_weights
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["bridge_gaps", "curves_at", "usable_scatter"]
 
 
-def curves_at(cal: Calibration, particle: Any, z_nm: Any) -> dict[str, np.ndarray]:
+def curves_at(cal: CalibrationView, particle: Any, z_nm: Any) -> dict[str, np.ndarray]:
     """The calibration curves wx, wy (px) and ρ of particles ``particle`` at tilt-corrected
     ``z_nm`` (arrays of one shape), from their traces smoothed by a running median of 5
     planes; ``<name>_scatter``: each particle's RMS scatter of the trace about that curve."""
@@ -34,7 +34,7 @@ def curves_at(cal: Calibration, particle: Any, z_nm: Any) -> dict[str, np.ndarra
     return out
 
 
-def _smoothed(cal: Calibration) -> dict[str, np.ndarray]:
+def _smoothed(cal: CalibrationView) -> dict[str, np.ndarray]:
     """Each particle's wx, wy, ρ traces (n, n_z) smoothed by a running median of 5 planes
     (gaps bridged first, :func:`bridge_gaps`) and ``<name>_scatter`` (n,), the RMS of the trace
     about it; computed once."""
@@ -51,7 +51,7 @@ def _smoothed(cal: Calibration) -> dict[str, np.ndarray]:
     return cal._cache["curves"]
 
 
-def usable_scatter(cal: Calibration) -> np.ndarray:
+def usable_scatter(cal: CalibrationView) -> np.ndarray:
     """(n, 3) RMS scatter of each particle's wx, wy, ρ traces about its curves
     (:func:`curves_at`) over its usable planes (:attr:`~latentz.calibration.result.
     Calibration.usable_planes`): far from focus the fitted widths of ring images jump by far

@@ -12,12 +12,12 @@ import pandas as pd
 from latentz.calibration.local import row_mean
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["particle_table"]
 
 
-def particle_table(cal: Calibration) -> pd.DataFrame:
+def particle_table(cal: CalibrationView) -> pd.DataFrame:
     """One row per calibration particle; the columns are listed under
     :attr:`~latentz.calibration.result.Calibration.particles`."""
     local, traces = cal.local, cal.traces

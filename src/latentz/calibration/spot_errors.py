@@ -23,12 +23,12 @@ from latentz.calibration.spot_columns import ERROR_COLUMNS, PARAMS, stacked
 from latentz.fit.api import CORRELATION_COLUMNS
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["spot_errors"]
 
 
-def spot_errors(cal: Calibration, placed: Placed, z_readout: str, error_parts: bool,
+def spot_errors(cal: CalibrationView, placed: Placed, z_readout: str, error_parts: bool,
                 reference: bool) -> dict[str, np.ndarray]:  # fmt: skip
     """:meth:`~latentz.calibration.result.Calibration.apply`'s columns of the ``placed``
     spots, their places with their errors (nm), in order: x_nm, x_err_nm, y_nm, y_err_nm,
@@ -56,7 +56,7 @@ def spot_errors(cal: Calibration, placed: Placed, z_readout: str, error_parts: b
 
 
 def _z_error(
-    cal: Calibration,
+    cal: CalibrationView,
     cols: dict[str, np.ndarray],
     s: np.ndarray,
     p: np.ndarray,
@@ -96,7 +96,7 @@ def _z_error(
 
 
 def _lateral_error(
-    cal: Calibration,
+    cal: CalibrationView,
     axis: str,
     cols: dict,
     p: np.ndarray,
@@ -131,7 +131,7 @@ def _lateral_error(
     return combine(own * px, model_d * px, lack * px, from_z * px, field_d)
 
 
-def _profile_bound(cal: Calibration, cols: dict, p: np.ndarray, z: np.ndarray,
+def _profile_bound(cal: CalibrationView, cols: dict, p: np.ndarray, z: np.ndarray,
                    sigma: np.ndarray) -> np.ndarray:  # fmt: skip
     """``sigma`` (nm), the fit's part of σ_z of the spots of columns ``cols`` read at z on
     particles ``p``, where z is poorly read capped by the 68 % half-width about z of their

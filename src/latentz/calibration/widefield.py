@@ -40,7 +40,7 @@ from latentz.calibration.fieldmodels import FieldModel, field_weights
 from latentz.calibration.polymodel import PolyModel
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["CurveModel", "WidefieldModel", "covered_span"]
 
@@ -182,7 +182,7 @@ class WidefieldModel:
     @classmethod
     def from_calibration(
         cls,
-        cal: Calibration,
+        cal: CalibrationView,
         *,
         kind: str,
         field_shape: tuple[int, int],
@@ -464,7 +464,7 @@ class CurveModel:
     field_shape: tuple[int, int]
 
     @classmethod
-    def from_calibration(cls, cal: Calibration, *, field_shape: tuple[int, int]) -> CurveModel:
+    def from_calibration(cls, cal: CalibrationView, *, field_shape: tuple[int, int]) -> CurveModel:
         """The kept particles of a :class:`~latentz.calibration.result.Calibration`."""
         kept = cal.kept
         if kept.size == 0:
