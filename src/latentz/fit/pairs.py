@@ -10,16 +10,21 @@ two round emitters at the ROI's two brightest peaks; the start that ends with th
 likelihood wins.
 
 :func:`is_split` keeps the second emitter, as the multi-emitter fitting of ThunderSTORM and SMAP
-does, when it raises the likelihood significantly: the likelihood ratio ``2 (l_2 - l_1)`` above
-:data:`LR_LIMIT`, with each emitter holding at least :data:`MIN_SHARE` of the pair's photons,
-the two at least :data:`MIN_SEPARATION_PX` apart and both inside the ROI. Errors are the
-Cramér–Rao bounds of the 13-parameter model, or its sandwich covariance.
+does, when it raises the likelihood significantly: the likelihood ratio ``2 (l_2 - l_1)``, over
+the dispersion of one emitter's fit, above :data:`LR_LIMIT`, with each emitter holding at least
+:data:`MIN_SHARE` of the pair's photons, the two at least :data:`MIN_SEPARATION_PX` apart and
+both inside the ROI. Errors are the Cramér–Rao bounds of the 13-parameter model, or its sandwich
+covariance.
 
 A real PSF is not the Gaussian of eq. 1, and a second Gaussian always takes up part of the
 difference: on simulated pupil-function PSFs the ratio of isolated emitters reaches several
-hundred. So the likelihood test alone does not decide; :mod:`latentz.localization.pairs` fits
-pairs only where one emitter's shape is beyond what one emitter looks like, and keeps them only
-where both emitters look like one.
+hundred, and on a bright defocused bead (30,000 photons) 130–500. That misfit grows with the
+photons, as the pixels' variance about eq. 1 does: the dispersion (the Pearson chi-square over
+its degrees of freedom) that one emitter's fit shows. As in a quasi-likelihood test of nested
+models, the likelihood ratio is divided by it (1 where the spots are eq. 1).
+:mod:`latentz.localization.pairs` measures it on the isolated fits where neither a calibration
+nor the spot's width shows more than one emitter, fits pairs only where one emitter's shape is
+beyond what one emitter looks like, and keeps them only where both emitters look like one.
 """
 
 from __future__ import annotations
@@ -365,10 +370,15 @@ def _fit_batch(
     )  # fmt: skip
 
 
-def is_split(fit: PairFit, shape: tuple[int, int]) -> np.ndarray:
+def is_split(
+    fit: PairFit, shape: tuple[int, int], dispersion: np.ndarray | float = 1.0
+) -> np.ndarray:
     """Which ROIs (of ``shape``, pixels) hold two emitters: the two-emitter fit converged, its
-    likelihood ratio exceeds :data:`LR_LIMIT`, each emitter holds at least :data:`MIN_SHARE` of
-    the photons, they lie :data:`MIN_SEPARATION_PX` apart or more, and both inside the ROI."""
+    likelihood ratio over ``dispersion`` exceeds :data:`LR_LIMIT`, each emitter holds at least
+    :data:`MIN_SHARE` of the photons, they lie :data:`MIN_SEPARATION_PX` apart or more, and both
+    inside the ROI. ``dispersion`` (per ROI, or one number) is the Pearson chi-square over its
+    degrees of freedom that one emitter of the one-emitter fit's brightness and shape shows: the
+    pixels' variance about eq. 1 in units of the noise's (1: the spots are eq. 1)."""
     h, w = shape
     p = fit.params
     photons = photons_of(p[..., 2], p[..., 4], p[..., 5], p[..., 6])
@@ -378,5 +388,5 @@ def is_split(fit: PairFit, shape: tuple[int, int]) -> np.ndarray:
                     & (p[..., 1] <= h - 0.5), axis=1)  # fmt: skip
     apart = np.hypot(*(p[:, 0, :2] - p[:, 1, :2]).T) >= MIN_SEPARATION_PX
     with np.errstate(invalid="ignore"):
-        significant = fit.ratio > LR_LIMIT
+        significant = fit.ratio / dispersion > LR_LIMIT
         return fit.converged & significant & (share >= MIN_SHARE) & apart & inside

@@ -12,8 +12,18 @@ freedom; at the frame's edge, over the ROI's pixels inside the frame) is a candi
   - with a calibration, the calibration does not locate it or its widths and ρ lie far from
     the curves at its z (``out_of_range`` or ``inconsistent`` of :mod:`.quality`);
   - without one, its long-axis width exceeds that of the chunk's isolated fits (no other
-    detection in the ROI) by more than :data:`WIDTH_MADS` robust standard deviations (1.4826
-    MAD) above their median: nothing else says how wide one emitter is.
+    emitter's fit in the ROI; a spot the detector saw twice counts once) by more than
+    :data:`WIDTH_MADS` robust standard deviations (1.4826 MAD) above their median: nothing else
+    says how wide one emitter is.
+
+Without a calibration, a fit no wider than that is poor only beyond the misfit one emitter of
+its brightness shows: its chi-square, and its pair's likelihood ratio, are divided by the
+:func:`dispersion` that the chunk's isolated fits show at its brightness (a quasi-likelihood
+test). A bright real PSF is no Gaussian: a bead of 30,000 photons 500 nm or more from focus is
+fitted to 3–6 times the noise, the detector sees two peaks along the long spot, and a second
+Gaussian raises the likelihood by 130–500, yet every single emitter there shows that much. Two
+emitters blurred into one spot wider than one emitter are a candidate on their width, their
+chi-square read against the noise: their sum is often closer to a Gaussian than one real PSF.
 
 With a calibration, a poor fit is no candidate where it looks like one emitter beyond the
 calibrated range: read over all the calibration's planes it lies beyond the range, and its
@@ -50,7 +60,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from latentz.calibration.readout import CHI2_HELD
-from latentz.fit._model import PARAMS, photons_of
+from latentz.fit._model import PARAMS, model_and_jacobian, photons_of
 from latentz.fit.api import CORRELATION_COLUMNS, ERROR_COLUMNS
 from latentz.fit.pairs import PairFit, fit_pairs, is_split
 from latentz.localization.quality import DUPLICATE_PX, calibration_flags, consistency
@@ -59,7 +69,8 @@ if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
 
 __all__ = [
-    "split_pairs", "box_pairs", "copies", "crowded", "PAIR_COLUMNS", "WIDTH_MADS", "CHI2_SDS",
+    "split_pairs", "box_pairs", "copies", "crowded", "dispersion", "PAIR_COLUMNS",
+    "WIDTH_MADS", "CHI2_SDS",
 ]  # fmt: skip
 
 #: Columns :func:`split_pairs` adds: the pair number (−1 for a one-emitter row) and ``merged``.
@@ -87,16 +98,50 @@ def _width(table: pd.DataFrame) -> np.ndarray:
     return long_axis_width(*(table[c].to_numpy(float) for c in ("wx", "wy", "rho")))
 
 
-def _width_limit(table: pd.DataFrame) -> float:
-    """Long-axis width (pixels) beyond one emitter's, from the table's isolated fits: their
+def _isolated(table: pd.DataFrame, group: np.ndarray, half: float) -> np.ndarray:
+    """Which rows are the isolated fits: converged, the first of their `copies` ``group`` (a
+    spot the detector saw twice counts once), and no other emitter's fit within ``half`` px
+    (`crowded`)."""
+    first = group == np.arange(len(table))
+    return table["converged"].to_numpy(bool) & first & ~crowded(table, half)
+
+
+def _width_limit(table: pd.DataFrame, isolated: np.ndarray) -> float:
+    """Long-axis width (pixels) beyond one emitter's, from the table's ``isolated`` fits: their
     median plus :data:`WIDTH_MADS` robust standard deviations (infinite with no such fit)."""
-    isolated = table["converged"].to_numpy(bool) & ~table["close_pair"].to_numpy(bool)
     width = _width(table)[isolated]
     width = width[np.isfinite(width)]
     if width.size == 0:
         return np.inf
     median = float(np.median(width))
     return median + WIDTH_MADS * 1.4826 * float(np.median(np.abs(width - median)))
+
+
+def dispersion(
+    table: pd.DataFrame, rois: np.ndarray, corner: np.ndarray, readnoise: float,
+    isolated: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """Per row, the Pearson chi-square over its degrees of freedom that one emitter of its fit's
+    brightness and shape shows in these ROIs, 1 at least: ``1 + f² Σ s² / (mu + σ²) / dof``
+    over the ROI's pixels inside the frame, with ``s`` the fit's counts above its background,
+    ``mu`` with it, ``σ`` the read noise (photoelectrons). A real PSF departs from eq. 1 by about
+    a fixed fraction of its signal in each pixel, whose mean square ``f²`` adds that sum to the
+    chi-square; ``f²`` is the median over the ``isolated`` rows (most are one emitter) of their
+    chi-square excess over the sum (0 at least, and with no such row). ``rois`` (n, h, w) and
+    ``corner`` (n, 2, x and y) as :func:`split_pairs` takes them."""
+    n, h, w = rois.shape
+    params = table[list(PARAMS)].to_numpy(float, copy=True)
+    params[:, :2] -= corner
+    mu = model_and_jacobian(params, (h, w), jacobian=False)[0]
+    seen = np.isfinite(rois).reshape(n, -1)
+    signal = mu - params[:, 3:4]
+    weight = np.sum(np.where(seen, signal**2 / np.maximum(mu + readnoise**2, 1e-12), 0.0), 1)
+    dof = np.maximum(seen.sum(axis=1) - len(PARAMS), 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fraction = (table["chi2"].to_numpy(float) - dof) / weight
+    usable = isolated & np.isfinite(fraction)
+    f2 = max(float(np.median(fraction[usable])), 0.0) if usable.any() else 0.0
+    return 1.0 + f2 * weight / dof
 
 
 def _beyond_one(table: pd.DataFrame, calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
@@ -203,18 +248,21 @@ def _candidates(
     shape: tuple[int, ...],
     seen_pixels: np.ndarray,
     group: np.ndarray,
+    spread: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(candidate, beyond, chi2): which rows, fitted in ROIs of ``shape`` pixels of which
     ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), which
     are shaped beyond one emitter (see the module docstring), and their consistency χ² with
-    the calibration (NaN without one, or where it does not locate them); the calibration is
-    applied to the poor fits only."""
+    the calibration (NaN without one, or where it does not locate them); a row's chi-square is
+    read over its ``spread``, the `dispersion` one emitter shows. The calibration is applied to
+    the poor fits only."""
     half = (min(shape) - 1) / 2
     finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
     finite &= ~crowded(table, half)
     dof = seen_pixels - len(PARAMS)  # a ROI clipped to the frame sees fewer pixels
     with np.errstate(invalid="ignore"):
-        poor = finite & (table["chi2"].to_numpy(float) > dof + CHI2_SDS * np.sqrt(2 * dof))
+        scaled = table["chi2"].to_numpy(float) / spread
+        poor = finite & (scaled > dof + CHI2_SDS * np.sqrt(2 * dof))
     seen_twice = np.bincount(group, minlength=len(table))[group] > 1
     chi2 = np.full(len(table), np.nan)
     if calibration is None:
@@ -295,17 +343,24 @@ def split_pairs(
         ``table`` with `PAIR_COLUMNS`, rows ordered by frame (see the module docstring).
     """
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
-    limit = _width_limit(table)
     group = copies(*(table[c].to_numpy(float) for c in ("x", "y", "frame")))
+    isolated = _isolated(table, group, (min(rois.shape[1:]) - 1) / 2)
+    limit = _width_limit(table, isolated)
     seen = np.isfinite(rois).sum(axis=(1, 2))
-    chosen, beyond, chi2 = _candidates(table, calibration, limit, rois.shape[1:], seen, group)
+    spread = np.ones(len(table))
+    if calibration is None:  # one emitter's misfit, where the width does not show two
+        with np.errstate(invalid="ignore"):
+            narrow = ~(_width(table) > limit)
+        spread[narrow] = dispersion(table, rois, corner, readnoise, isolated)[narrow]
+    chosen, beyond, chi2 = _candidates(table, calibration, limit, rois.shape[1:], seen, group,
+                                       spread)  # fmt: skip
     candidates = np.flatnonzero(chosen)
     if candidates.size == 0:
         return table
     local = table.loc[candidates, list(PARAMS)].to_numpy(float, copy=True)
     local[:, :2] -= corner[candidates]
     fit = fit_pairs(rois[candidates], local, readnoise=readnoise, errors="sandwich")
-    proposed = is_split(fit, rois.shape[1:]) & _in_frame(fit, rois[candidates])
+    proposed = is_split(fit, rois.shape[1:], spread[candidates]) & _in_frame(fit, rois[candidates])
     # without a calibration the width is the evidence; with one, the flags that made a candidate
     table.loc[candidates, "merged"] = beyond[candidates] & (calibration is None)
     if not proposed.any():
