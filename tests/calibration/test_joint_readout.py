@@ -7,7 +7,7 @@ two sides of focus apart (no astigmatism), σ must reach the mirror image."""
 import numpy as np
 import pytest
 
-from latentz.calibration.readout import joint_z, profile_width, shape_covariance
+from latentz.calibration.readout import _quadratic, joint_z, profile_width, shape_covariance
 
 N = 3000  # spots: a coverage's binomial standard error is sqrt(0.68 · 0.32 / N) ≈ 0.009
 COVERAGE_TOL = 3 * np.sqrt(0.683 * 0.317 / N)
@@ -166,3 +166,13 @@ def test_each_plane_compared_at_the_spots_own_brightness_finds_its_z():
         joint_z(curves_at, grid, scatter, p, same, cov, z_only=True).z_nm,
         joint_z(curves_at, grid, scatter, p, one, cov, z_only=True).z_nm,
     )
+
+
+def test_the_plane_distances_add_as_einsum_does():
+    rng = np.random.default_rng(4)
+    r = rng.normal(size=(50, 61, 3)) * 10 ** rng.uniform(-3, 3, size=(50, 61, 3))
+    r[rng.random(r.shape) < 0.01] = np.nan
+    weight = rng.normal(size=(50, 3, 3))
+    weight = weight @ weight.transpose(0, 2, 1)
+    expected = np.einsum("mki,mij,mkj->mk", r, weight, r)
+    np.testing.assert_array_equal(_quadratic(r, weight), expected)  # to the last bit

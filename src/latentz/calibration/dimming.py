@@ -52,13 +52,15 @@ particles"), and at very low counts the fit's own small-sample bias.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 
 __all__ = [
-    "LEVELS", "DIM_COLUMNS", "SHAPE_DIM_COLUMNS", "EDGE_QUANTILE", "background_ratio", "dim_fits",
-    "dimmest", "level_shift", "position_shift", "shape_shift",
+    "LEVELS", "DIM_COLUMNS", "SHAPE_DIM_COLUMNS", "EDGE_QUANTILE", "Levels", "background_ratio",
+    "dim_fits", "dimmest", "level_positions", "level_shift", "level_value", "levels",
+    "position_shift", "shape_levels", "shape_shift",
 ]  # fmt: skip
 
 #: Background-to-peak ratios c = (b + readnoise²) / A at which the calibration ROIs are refitted:
@@ -142,9 +144,19 @@ def shape_shift(
     ``shape_of(amplitude, wx, wy, rho)`` the shape value, or m values (n, m) whose biases
     (n, m) are returned at once.
     """
+    return level_shift(shape_levels(shape_of, traces_at, c_own), c_spot, c_from)
+
+
+def shape_levels(
+    shape_of: Callable[..., np.ndarray],
+    traces_at: Callable[[str], np.ndarray],
+    c_own: np.ndarray,
+) -> Levels:
+    """The shape value (or m values) of :func:`shape_shift`'s ``shape_of`` over log c at each of
+    n particles' planes (:func:`levels`; ``traces_at`` and ``c_own`` as :func:`shape_shift`'s)."""
     own = shape_of(*(traces_at(name) for name in _FITTED))
     dim = [shape_of(*(traces_at(f"dim{k}_{name}") for name in _FITTED)) for k in range(len(LEVELS))]
-    return level_shift(own, dim, traces_at, c_spot, c_own, c_from)
+    return levels(own, dim, traces_at, c_own)
 
 
 def position_shift(
@@ -163,31 +175,35 @@ def position_shift(
         np.column_stack([traces_at(f"dim{k}_dx"), traces_at(f"dim{k}_dy")])
         for k in range(len(LEVELS))
     ]
-    return level_shift(own, dim, traces_at, c_spot, c_own, c_from)
+    return level_shift(levels(own, dim, traces_at, c_own), c_spot, c_from)
 
 
-def level_shift(
+class Levels(NamedTuple):
+    """A value v (or m values) over log c at n particles' planes (:func:`levels`): ``start``
+    (n,), log of the calibration's own c; ``knots`` (n, levels + 1), ascending log c from
+    ``start``; ``values`` (n, levels + 1[, m]), v there."""
+
+    start: np.ndarray
+    knots: np.ndarray
+    values: np.ndarray
+
+
+def levels(
     own: np.ndarray,
     dim: list[np.ndarray],
     traces_at: Callable[[str], np.ndarray],
-    c_spot: np.ndarray,
     c_own: np.ndarray,
-    c_from: np.ndarray | None = None,
-) -> np.ndarray:
-    """``v(c_spot) − v(c_from)`` (n,) or (n, m) of a value v (or m values) whose calibration fit
-    (ratio ``c_own``) gives ``own`` (n,) or (n, m) and whose refits give ``dim`` (one array like
-    ``own`` per level of :data:`LEVELS`):
-    v(c) linear in log c between the calibration's own fit and the refits above ``c_own`` (the
-    last one's beyond them; NaN where a refit is missing). ``c_from`` (default ``c_own``; never
-    below it) is where the correction starts: 0 where ``c_spot ≤ c_from``. A refit's own c is
+) -> Levels:
+    """v(c) of a value v (or m values) whose calibration fit (ratio ``c_own``) gives ``own`` (n,)
+    or (n, m) and whose refits give ``dim`` (one array like ``own`` per level of
+    :data:`LEVELS`): linear in log c between the calibration's own fit and the refits above
+    ``c_own`` (the last one's beyond them; NaN where a refit is missing). A refit's own c is
     measured as a spot's: its fitted background over its fitted amplitude (``traces_at``'s
     ``dim{k}_background`` and ``dim{k}_amplitude``; the refit has no read noise). Both differ
     from the level: the fitted background of the bright image also holds the PSF's far wings,
     which are removed with it, and the Gaussian's amplitude changes with the background."""
     with np.errstate(invalid="ignore", divide="ignore"):
         start = np.log(np.asarray(c_own, dtype=np.float64))
-        x_from = start if c_from is None else np.maximum(np.log(np.asarray(c_from, float)), start)
-        x = np.maximum(np.log(np.asarray(c_spot, dtype=np.float64)), x_from)
         # each refit's own c, measured as a spot's is: its fitted background over its amplitude
         level = np.log(np.column_stack([
             traces_at(f"dim{k}_background") / traces_at(f"dim{k}_amplitude")
@@ -201,15 +217,43 @@ def level_shift(
     values = np.stack([own, *dim], axis=1)  # (n, levels + 1[, m])
     values[:, 1:] = np.where(brighter.reshape(brighter.shape + trailing), own[:, None],
                              values[:, 1:])  # fmt: skip
-    rows = np.arange(len(own))
+    return Levels(start, knots, values)
 
-    def value(at: np.ndarray) -> np.ndarray:
-        j = np.sum(knots[:, 1:] < at[:, None], axis=1)  # knots[j] < at <= knots[j + 1]
-        upper = np.minimum(j + 1, len(LEVELS))
-        width = knots[rows, upper] - knots[rows, j]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = np.where(width > 0, (at - knots[rows, j]) / width, 1.0)
-        t = np.clip(t, 0.0, 1.0).reshape(t.shape + trailing)
-        return values[rows, j] + t * (values[rows, upper] - values[rows, j])
 
-    return value(x) - value(x_from)
+def level_shift(table: Levels, c_spot: np.ndarray, c_from: np.ndarray | None = None) -> np.ndarray:
+    """``v(c_spot) − v(c_from)`` (n,) or (n, m) of the value(s) of ``table`` (:func:`levels`).
+    ``c_from`` (default the calibration's own c; never below it) is where the correction
+    starts: 0 where ``c_spot ≤ c_from``."""
+    x, x_from = level_positions(table.start, c_spot, c_from)
+    return level_value(table, x) - level_value(table, x_from)
+
+
+def level_positions(start: np.ndarray, c_spot: np.ndarray,
+                    c_from: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """log c of the spots (n,) and of where their correction starts (:func:`level_shift`), from
+    their ``start`` (n,; :class:`Levels`' log of the calibration's own c)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x_from = start
+        if c_from is not None:
+            x_from = np.maximum(np.log(np.asarray(c_from, float)), x_from)
+        x = np.maximum(np.log(np.asarray(c_spot, dtype=np.float64)), x_from)
+    return x, x_from
+
+
+def level_value(table: Levels, at: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """v (n,) or (n, m) of the value(s) of ``table`` (:func:`levels`) at log c ``at`` (n,):
+    linear between its knots, their first and last values beyond them. ``rows`` (n,): the
+    table's entries read (default all of them)."""
+    n_knots = table.knots.shape[1]
+    knots = table.knots if rows is None else table.knots[rows]
+    first = n_knots * (np.arange(len(at)) if rows is None else rows)  # flat index of knot 0
+    flat_knots = table.knots.ravel()
+    flat_values = table.values.reshape((-1, *table.values.shape[2:]))
+    j = np.sum(knots[:, 1:] < at[:, None], axis=1)  # knots[j] < at <= knots[j + 1]
+    lower = first + j
+    upper = first + np.minimum(j + 1, n_knots - 1)
+    width = flat_knots[upper] - flat_knots[lower]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(width > 0, (at - flat_knots[lower]) / width, 1.0)
+    t = np.clip(t, 0.0, 1.0).reshape(t.shape + (1,) * (table.values.ndim - 2))
+    return flat_values[lower] + t * (flat_values[upper] - flat_values[lower])

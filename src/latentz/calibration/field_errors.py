@@ -120,12 +120,12 @@ def _pair_sigma(cal: CalibrationView, z: np.ndarray, c_spot: np.ndarray | None,
     :func:`~latentz.calibration.errors.field_sigma` line in distance, then linear in log c
     between them."""
     key = f"pair_table/{readout}"
-    if key not in cal._cache:
-        cal._cache[key] = pair_table(cal, readout)
-    table = cal._cache[key]
+    if key not in cal._cache:  # with its ratios c, which a sort of the whole table finds
+        table = pair_table(cal, readout)
+        cal._cache[key] = table, np.unique(table["c"].to_numpy())
+    table, levels = cal._cache[key]
     if len(table) == 0 or not table["in_range"].any():
         return np.zeros(np.shape(z))
-    levels = np.unique(table["c"].to_numpy())
     by_level = np.array([
         _held_out_line(cal, lambda c=c: table[table["c"] == c], "pairs", "z",
                        f"pair_line/{readout}/{c}", readout == "shape").sigma(z, distance)

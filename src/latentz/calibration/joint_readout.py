@@ -10,7 +10,7 @@ import numpy as np
 
 from latentz.calibration.brightness_shifts import shape_params_shift
 from latentz.calibration.local_errors import error_model
-from latentz.calibration.particle_curves import usable_scatter
+from latentz.calibration.particle_curves import curves_on_planes, usable_scatter
 from latentz.calibration.readout import JointZ, joint_z, shape_covariance
 from latentz.calibration.spot_columns import ERROR_COLUMNS, PARAMS, stacked
 from latentz.fit.api import CORRELATION_COLUMNS
@@ -32,7 +32,7 @@ def joint_readout(
     if shift is not None:
         fitted = (fitted if shift.ndim == 2 else fitted[:, None]) - shift
     return joint_z(cal.curves_at, cal.local.z_nm, usable_scatter(cal), p, fitted, cov,
-                   z_only=z_only)  # fmt: skip
+                   z_only=z_only, on_grid=curves_on_planes(cal))  # fmt: skip
 
 
 def shape_fit(cal: CalibrationView, cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

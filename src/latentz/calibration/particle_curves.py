@@ -16,7 +16,7 @@ from latentz.calibration.rows import interp_rows, row_weights
 if TYPE_CHECKING:
     from latentz.calibration.view import CalibrationView
 
-__all__ = ["bridge_gaps", "curves_at", "usable_scatter"]
+__all__ = ["bridge_gaps", "curves_at", "curves_on_planes", "usable_scatter"]
 
 
 def curves_at(cal: CalibrationView, particle: Any, z_nm: Any) -> dict[str, np.ndarray]:
@@ -32,6 +32,17 @@ def curves_at(cal: CalibrationView, particle: Any, z_nm: Any) -> dict[str, np.nd
         out[name] = interp_rows(cal.local.z_nm, curves[name], p, z, at)
         out[f"{name}_scatter"] = curves[f"{name}_scatter"][p]
     return out
+
+
+def curves_on_planes(cal: CalibrationView) -> np.ndarray:
+    """(n, n_z, 3) every particle's curves of :data:`~latentz.calibration.readout.SHAPE_PARAMS`
+    (:func:`curves_at`) at its own planes, where the joint readout compares a spot with each;
+    computed once."""
+    if "curves_on_planes" not in cal._cache:
+        grid = cal.local.z_nm
+        c = curves_at(cal, np.arange(len(grid))[:, None], grid)
+        cal._cache["curves_on_planes"] = np.stack([c[name] for name in SHAPE_PARAMS], axis=-1)
+    return cal._cache["curves_on_planes"]
 
 
 def _smoothed(cal: CalibrationView) -> dict[str, np.ndarray]:

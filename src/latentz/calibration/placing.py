@@ -24,7 +24,7 @@ from latentz.calibration.shape import shape_value, uses_amplitude
 from latentz.calibration.spot_columns import SPOT_COLUMNS, spot_arrays
 
 if TYPE_CHECKING:
-    from latentz.calibration.result import Calibration
+    from latentz.calibration.view import CalibrationView
 
 __all__ = ["BEYOND_WIDTH", "Z_READOUTS", "Placed", "place", "track_reference", "z_beyond_range"]
 
@@ -36,8 +36,9 @@ Z_READOUTS = ("joint", "shape")
 #: 200) calls such a spot inconsistent too, so single molecules lose nothing more to it.
 BEYOND_WIDTH = 2.0
 #: Spots searched at once against every plane at their own brightness (:func:`_past_turn`):
-#: the refits read take about 47 values per spot and plane, 19 MB for 200 planes.
-_PLANE_CHUNK = 256
+#: the shifts' knots and values read take about 30 values per spot and plane, 29 MB for 121
+#: planes; 1024 ran 15 % faster than 256 or 4096.
+_PLANE_CHUNK = 1024
 
 
 class Placed(NamedTuple):
@@ -60,7 +61,7 @@ class Placed(NamedTuple):
     ref_scatter: float
 
 
-def place(cal: Calibration, spots: pd.DataFrame, amplitude_reference: str,
+def place(cal: CalibrationView, spots: pd.DataFrame, amplitude_reference: str,
           z_readout: str) -> Placed:  # fmt: skip
     """Where :meth:`~latentz.calibration.result.Calibration.apply` puts ``spots`` (its checks
     first), before their errors."""
@@ -103,7 +104,7 @@ def place(cal: Calibration, spots: pd.DataFrame, amplitude_reference: str,
                   ref_scatter)  # fmt: skip
 
 
-def z_beyond_range(cal: Calibration, spots: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+def z_beyond_range(cal: CalibrationView, spots: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """:meth:`~latentz.calibration.result.Calibration.z_beyond_range`: the z (nm) of the
     brightness-corrected joint readout of ``spots`` over all their particle's planes where it
     lies outside that particle's monotonic range (NaN elsewhere), and the particle."""
@@ -136,7 +137,7 @@ def track_reference(shape: str, spots: pd.DataFrame, cols: dict, theta) -> np.nd
 
 
 def _amplitude_reference(
-    cal: Calibration, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
+    cal: CalibrationView, spots: pd.DataFrame, cols: dict, p: np.ndarray, amplitude_reference: str
 ) -> tuple[np.ndarray, float]:
     """Each spot's A_{ρ=ρ0} for the shape value (:meth:`~latentz.calibration.result.
     Calibration.apply`'s ``amplitude_reference``), and the relative scatter of the
@@ -150,7 +151,7 @@ def _amplitude_reference(
     return cal.local.shapes[shape].amplitude_ref[p], 0.0
 
 
-def _particle_references(cal: Calibration) -> np.ndarray:
+def _particle_references(cal: CalibrationView) -> np.ndarray:
     """(n,) :attr:`~latentz.calibration.result.Calibration.reference_field` at every
     particle's position (computed once), so that a spot takes its nearest particle's entry
     instead of a tree query of its own."""
@@ -159,7 +160,7 @@ def _particle_references(cal: Calibration) -> np.ndarray:
     return cal._cache["particle_references"]
 
 
-def _locate(cal: Calibration, s: np.ndarray, p: np.ndarray, cols: dict,
+def _locate(cal: CalibrationView, s: np.ndarray, p: np.ndarray, cols: dict,
             located: np.ndarray) -> tuple:  # fmt: skip
     """z (nm), the field models' Δx', Δy' (px; None for ``nearest``: the particle ``p``'s
     own) and in_range of shape values ``s`` at the spots' positions."""
@@ -176,7 +177,7 @@ def _locate(cal: Calibration, s: np.ndarray, p: np.ndarray, cols: dict,
     return z, {"x": dx_w, "y": dy_w}, in_range & located
 
 
-def _beyond_range(cal: Calibration, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+def _beyond_range(cal: CalibrationView, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
     """(n,) spots at z (nm) on particles ``p`` whose mean fitted width (``cols``' wx, wy,
     px) exceeds :data:`BEYOND_WIDTH` times the particle's curves at z
     (:meth:`~latentz.calibration.result.Calibration.curves_at`): spots past the end of the
@@ -191,7 +192,7 @@ def _beyond_range(cal: Calibration, cols: dict, p: np.ndarray, z: np.ndarray) ->
     return out
 
 
-def _past_turn(cal: Calibration, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+def _past_turn(cal: CalibrationView, cols: dict, p: np.ndarray, z: np.ndarray) -> np.ndarray:
     """(n,) spots (columns ``cols``) read at z (nm) from their one shape value whose fitted
     wx, wy, ρ lie nearest their particle's curves outside the monotonic range of its inverse
     z(s): the joint search over all the particle's planes

@@ -15,7 +15,7 @@ from latentz.calibration.field_errors import field_sigma, z_field_error
 from latentz.calibration.joint_readout import shape_fit
 from latentz.calibration.local_errors import error_model, lack_of_fit, model_sigma
 from latentz.calibration.noise_scale import fit_part_z, noise_scale_at, through_inverse
-from latentz.calibration.particle_curves import usable_scatter
+from latentz.calibration.particle_curves import curves_on_planes, usable_scatter
 from latentz.calibration.placing import Placed
 from latentz.calibration.readout import JointZ, profile_width
 from latentz.calibration.rows import interp_rows, row_weights
@@ -158,7 +158,7 @@ def _profile_bound(cal: CalibrationView, cols: dict, p: np.ndarray, z: np.ndarra
         fitted = fitted - shift
     window = window[rows]
     width = profile_width(cal.curves_at, cal.local.z_nm, usable_scatter(cal), p[rows],
-                          fitted, cov, z[rows], window)  # fmt: skip
+                          fitted, cov, z[rows], window, curves_on_planes(cal))  # fmt: skip
     out = sigma.copy()
     out[rows] = np.fmin(sigma[rows], width)
     return out
