@@ -140,7 +140,7 @@ def dispersion(
     return 1.0 + f2 * weight / dof
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, nogil=True, cache=True)
 def _signal_weights(params: np.ndarray, rois: np.ndarray, noise_sq: float) -> np.ndarray:
     """Per ROI, ``Σ s² / (mu + noise_sq)`` over its finite pixels: ``s`` eq. 1's counts above
     the background at the pixel centres for ``params`` ((n, 7), `PARAMS` in ROI pixels), ``mu``
