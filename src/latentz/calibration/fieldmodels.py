@@ -572,10 +572,13 @@ class FieldModel:
         """Fill ``out`` at points ``idx``: every column (``cols`` None) or, per point, the
         columns ``cols[i, :]``. The weights of each validity pattern are computed once, for
         every point that needs that pattern in any of its columns, and kept in ``weights``
-        (:meth:`__call__`)."""
+        (:meth:`__call__`); a pattern that none of ``cols`` reads is skipped."""
         queries = np.column_stack([x, y])
-        for k, pattern in enumerate(self._patterns):
-            rows = np.flatnonzero(pattern)
+        read = np.arange(len(self._patterns))
+        if cols is not None:
+            read = np.unique(self._pattern_of[cols[idx]])
+        for k in read:
+            rows = np.flatnonzero(self._patterns[k])
             uses = None if cols is None else self._pattern_of[cols[idx]] == k  # (points, k)
             sel = idx if cols is None else idx[uses.any(axis=1)]
             if sel.size == 0 or rows.size == 0:
