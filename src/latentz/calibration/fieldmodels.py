@@ -481,7 +481,13 @@ class FieldModel:
         return self.values.shape[1]
 
     def __call__(
-        self, x_px: Any, y_px: Any, *, columns: Any = None, design: np.ndarray | None = None
+        self,
+        x_px: Any,
+        y_px: Any,
+        *,
+        columns: Any = None,
+        design: np.ndarray | None = None,
+        weights: dict | None = None,
     ) -> np.ndarray:
         """Evaluate the model at field positions.
 
@@ -497,6 +503,10 @@ class FieldModel:
             Zernike only: ``zernike_design(x_px, y_px, field_shape=..., n_terms=p)`` computed
             once and shared by several models at the same points, with ``p`` at least
             ``max(n_terms_effective)`` of each.
+        weights : dict, optional
+            Interpolants only (Zernike models ignore it): the neighbour weights computed here,
+            by particles and query points, shared by several models evaluated at the same
+            points (the weights of a set of particles at a set of points are computed once).
 
         Returns
         -------
@@ -532,7 +542,7 @@ class FieldModel:
         elif design is not None:
             raise TypeError(f"`design` applies to Zernike models only, not {self.kind!r}.")
         else:
-            self._eval_interpolant(x, y, idx, cols, out)
+            self._eval_interpolant(x, y, idx, cols, out, {} if weights is None else weights)
         if cols is not None:
             return out.reshape(shape_out)
         return out[:, 0] if self.options["squeeze"] else out
@@ -558,23 +568,30 @@ class FieldModel:
             else:
                 out[sel] = np.einsum("ij,ikj->ik", block, coef_rows[cols[sel]])
 
-    def _eval_interpolant(self, x, y, idx, cols, out) -> None:
+    def _eval_interpolant(self, x, y, idx, cols, out, weights: dict) -> None:
         """Fill ``out`` at points ``idx``: every column (``cols`` None) or, per point, the
         columns ``cols[i, :]``. The weights of each validity pattern are computed once, for
-        every point that needs that pattern in any of its columns."""
+        every point that needs that pattern in any of its columns, and kept in ``weights``
+        (:meth:`__call__`); a pattern that none of ``cols`` reads is skipped."""
         queries = np.column_stack([x, y])
-        for k, pattern in enumerate(self._patterns):
-            rows = np.flatnonzero(pattern)
+        read = np.arange(len(self._patterns))
+        if cols is not None:
+            read = np.unique(self._pattern_of[cols[idx]])
+        for k in read:
+            rows = np.flatnonzero(self._patterns[k])
             uses = None if cols is None else self._pattern_of[cols[idx]] == k  # (points, k)
             sel = idx if cols is None else idx[uses.any(axis=1)]
             if sel.size == 0 or rows.size == 0:
                 continue
             points = np.column_stack([self.x_px[rows], self.y_px[rows]])
-            pi, pj, w, ok = _WEIGHTS[self.kind](points, queries[sel])
+            key = (self.kind, points.tobytes(), queries[sel].tobytes())
+            if key not in weights:
+                weights[key] = _WEIGHTS[self.kind](points, queries[sel])
+            pi, pj, w, ok = weights[key]
             if cols is None:
                 in_pattern = np.flatnonzero(self._pattern_of == k)
-                weights = csr_matrix((w, (pi, pj)), shape=(sel.size, rows.size))
-                block = weights @ self.values[np.ix_(rows, in_pattern)]
+                matrix = csr_matrix((w, (pi, pj)), shape=(sel.size, rows.size))
+                block = matrix @ self.values[np.ix_(rows, in_pattern)]
                 block[~ok] = np.nan
                 out[np.ix_(sel, in_pattern)] = block
                 continue

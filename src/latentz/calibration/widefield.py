@@ -287,9 +287,9 @@ class WidefieldModel:
         covers = valid[near, j[:, None]] & valid[near, j[:, None] + 1]
         return ok & (covers.mean(axis=1) >= self.min_fraction)
 
-    def _columns(self, model, grid, x, y, v, design):
+    def _columns(self, model, grid, x, y, v, design, weights):
         j, t, inside = _bracket(grid, v)
-        pair = model(x, y, columns=np.column_stack([j, j + 1]), design=design)
+        pair = model(x, y, columns=np.column_stack([j, j + 1]), design=design, weights=weights)
         return np.where(inside, pair[:, 0] * (1 - t) + pair[:, 1] * t, np.nan)
 
     def __call__(
@@ -307,13 +307,14 @@ class WidefieldModel:
         x, y = np.where(inside, x, np.nan), np.where(inside, y, np.nan)  # beyond: out of range
         in_range = self.coverage(x, y, s)
         xq, yq = np.where(in_range, x, np.nan), np.where(in_range, y, np.nan)
+        weights = {}  # the interpolants' neighbour weights, shared by the three models
         for it in range(iterations + 1):
             design = self._design(xq, yq)
-            z = self._columns(self.axial, self.s_grid, xq, yq, s, design)
+            z = self._columns(self.axial, self.s_grid, xq, yq, s, design, weights)
             if it:
                 design = self._design(x, y)
-            dx = self._columns(self.dx, self.z_grid_nm, x, y, z, design)
-            dy = self._columns(self.dy, self.z_grid_nm, x, y, z, design)
+            dx = self._columns(self.dx, self.z_grid_nm, x, y, z, design, weights)
+            dy = self._columns(self.dy, self.z_grid_nm, x, y, z, design, weights)
             xq, yq = x - dx, y - dy
         in_range &= np.isfinite(z) & np.isfinite(dx) & np.isfinite(dy)
         nan = np.where(in_range, 0.0, np.nan)
