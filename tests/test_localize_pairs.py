@@ -121,7 +121,7 @@ def test_one_emitter_beyond_the_calibrated_range_is_not_split_and_merged_pairs_s
 
     from latentz.calibration import calibrate_traces
     from latentz.calibration.traces import traces_table
-    from latentz.localization.pairs import _candidates
+    from latentz.localization.pairs import _candidates, crowded
     from latentz.localization.quality import calibration_flags
 
     gx, gy = np.meshgrid(np.arange(25.0, 200.0, 50.0), np.arange(25.0, 200.0, 50.0))
@@ -144,8 +144,9 @@ def test_one_emitter_beyond_the_calibrated_range_is_not_split_and_merged_pairs_s
     table.attrs["roi_size"] = cal.roi_size
     single = single[single | dimer]
     seen = np.full(len(table), cal.roi_size**2)
-    chosen, *_ = _candidates(table, cal, np.inf, (cal.roi_size,) * 2, seen, np.arange(len(table)),
-                             np.ones(len(table)))  # fmt: skip
+    crowd = crowded(table, (cal.roi_size - 1) / 2)
+    chosen, *_ = _candidates(table, cal, np.inf, seen, np.arange(len(table)), np.ones(len(table)),
+                             crowd)  # fmt: skip
     flags = calibration_flags(cal.apply(table), cal)
     assert single.sum() == 48 and (~single).sum() == 32
     assert not chosen[single].any(), table[single & chosen]

@@ -98,12 +98,12 @@ def _width(table: pd.DataFrame) -> np.ndarray:
     return long_axis_width(*(table[c].to_numpy(float) for c in ("wx", "wy", "rho")))
 
 
-def _isolated(table: pd.DataFrame, group: np.ndarray, half: float) -> np.ndarray:
+def _isolated(table: pd.DataFrame, group: np.ndarray, crowd: np.ndarray) -> np.ndarray:
     """Which rows are the isolated fits: converged, the first of their `copies` ``group`` (a
-    spot the detector saw twice counts once), and no other emitter's fit within ``half`` px
-    (`crowded`)."""
+    spot the detector saw twice counts once), and not ``crowd`` (`crowded`: no other emitter's
+    fit in the ROI)."""
     first = group == np.arange(len(table))
-    return table["converged"].to_numpy(bool) & first & ~crowded(table, half)
+    return table["converged"].to_numpy(bool) & first & ~crowd
 
 
 def _width_limit(table: pd.DataFrame, isolated: np.ndarray) -> float:
@@ -263,20 +263,19 @@ def _candidates(
     table: pd.DataFrame,
     calibration: Calibration | None,
     limit: float,
-    shape: tuple[int, ...],
     seen_pixels: np.ndarray,
     group: np.ndarray,
     spread: np.ndarray,
+    crowd: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(candidate, beyond, chi2): which rows, fitted in ROIs of ``shape`` pixels of which
-    ``seen_pixels`` lie in the frame, get the two-emitter fit (one per `copies` group), which
+    """(candidate, beyond, chi2): which rows, fitted in ROIs of which ``seen_pixels`` lie in
+    the frame and not ``crowd`` (`crowded`: another emitter's fit in the ROI, which the
+    two-emitter fit would not model), get the two-emitter fit (one per `copies` group), which
     are shaped beyond one emitter (see the module docstring), and their consistency χ² with
     the calibration (NaN without one, or where it does not locate them); a row's chi-square is
     read over its ``spread``, the `dispersion` one emitter shows. The calibration is applied to
     the poor fits only."""
-    half = (min(shape) - 1) / 2
-    finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1)
-    finite &= ~crowded(table, half)
+    finite = np.isfinite(table[list(PARAMS)].to_numpy(float)).all(axis=1) & ~crowd
     dof = seen_pixels - len(PARAMS)  # a ROI clipped to the frame sees fewer pixels
     with np.errstate(invalid="ignore"):
         scaled = table["chi2"].to_numpy(float) / spread
@@ -362,7 +361,8 @@ def split_pairs(
     """
     table = table.reset_index(drop=True).assign(pair=-1, merged=False)
     group = copies(*(table[c].to_numpy(float) for c in ("x", "y", "frame")))
-    isolated = _isolated(table, group, (min(rois.shape[1:]) - 1) / 2)
+    crowd = crowded(table, (min(rois.shape[1:]) - 1) / 2)
+    isolated = _isolated(table, group, crowd)
     limit = _width_limit(table, isolated)
     seen = np.isfinite(rois).sum(axis=(1, 2))
     spread = np.ones(len(table))
@@ -370,8 +370,7 @@ def split_pairs(
         with np.errstate(invalid="ignore"):
             narrow = ~(_width(table) > limit)
         spread[narrow] = dispersion(table, rois, corner, readnoise, isolated)[narrow]
-    chosen, beyond, chi2 = _candidates(table, calibration, limit, rois.shape[1:], seen, group,
-                                       spread)  # fmt: skip
+    chosen, beyond, chi2 = _candidates(table, calibration, limit, seen, group, spread, crowd)
     candidates = np.flatnonzero(chosen)
     if candidates.size == 0:
         return table
