@@ -56,9 +56,18 @@ def test_combine_adds_in_quadrature_and_ignores_missing_parts():
     np.testing.assert_allclose(combine(np.array([3.0]), np.array([4.0]), np.nan), [5.0])
 
 
-def _summary(**rows):
-    cols = ["rmse_z_nm", "rmse_xy_nm", "in_range"]
-    return pd.DataFrame({k: dict(zip(cols, v, strict=True)) for k, v in rows.items()}).T
+def _table(**rows):
+    """A crossval table of 10 held-out particles of 10 planes each: per model, its z and
+    lateral error (nm) on every plane it predicts and the share of planes it predicts (the
+    first ones of the table)."""
+    plane = np.arange(100)
+    return pd.concat(
+        [pd.DataFrame({"model": kind, "particle": plane // 10, "z_nm": 100.0 * (plane % 10),
+                       "in_range": plane < round(share * 100), "err_z_nm": z, "err_x_nm": xy,
+                       "err_y_nm": xy})
+         for kind, (z, xy, share) in rows.items()],
+        ignore_index=True,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -70,7 +79,7 @@ def _summary(**rows):
     ],
 )
 def test_auto_picks_the_best_model_never_worse_than_nearest(rows, chosen):
-    assert choose_field_model(_summary(**rows)) == chosen
+    assert choose_field_model(_table(**rows)) == chosen
 
 
 def test_auto_ranks_by_the_typical_emitters_error_not_the_rms_of_the_range_ends():
@@ -84,6 +93,8 @@ def test_auto_ranks_by_the_typical_emitters_error_not_the_rms_of_the_range_ends(
             pd.DataFrame(
                 {
                     "model": kind,
+                    "particle": np.arange(100) // 10,
+                    "z_nm": 100.0 * (np.arange(100) % 10),
                     "in_range": True,
                     "err_x_nm": 1.0,
                     "err_y_nm": 1.0,
@@ -96,8 +107,24 @@ def test_auto_ranks_by_the_typical_emitters_error_not_the_rms_of_the_range_ends(
     )
     with_sigma = crossval_summary(table, np.tile(sigma, 3))
     assert with_sigma.loc["a", "rmse_z_nm"] > with_sigma.loc["b", "rmse_z_nm"]
-    assert choose_field_model(with_sigma) == "a"
-    assert choose_field_model(crossval_summary(table)) == "b"  # without σ_fit: the RMS
+    assert choose_field_model(table, np.tile(sigma, 3)) == "a"
+    assert choose_field_model(table) == "b"  # without σ_fit: the RMS
+
+
+def test_auto_compares_the_models_on_the_planes_each_of_them_predicts():
+    """``a`` predicts all 100 held-out planes, ``b`` all but the far end of 4 particles (96 %),
+    where an emitter's σ_fit is 500 nm and ``a`` errs 300 nm; elsewhere ``a`` errs 10 nm, ``b``
+    20 and ``nearest`` 40. Over the planes each predicts ``b``'s typical error is the smaller
+    (28 nm against 45, which the 4 far planes rule); on the planes both predict it is ``a``'s
+    (22 nm against 28), and auto takes ``a``."""
+    table = _table(nearest=(40.0, 5.0, 1.0), a=(10.0, 4.0, 1.0), b=(20.0, 4.0, 1.0))
+    far = (table["particle"] < 4) & (table["z_nm"] == 900.0)
+    table.loc[far & (table["model"] == "a"), "err_z_nm"] = 300.0
+    table.loc[far & (table["model"] == "b"), "in_range"] = False
+    sigma = np.where(far, 500.0, 20.0)
+    summary = crossval_summary(table, sigma)
+    assert summary.loc["b", "typical_z_nm"] < summary.loc["a", "typical_z_nm"]
+    assert choose_field_model(table, sigma) == "a"
 
 
 def test_auto_with_too_few_particles_says_so_and_uses_nearest():
@@ -137,7 +164,7 @@ def test_a_model_that_loses_held_out_particles_is_counted_and_never_chosen():
         planes = np.arange(20)
         for kind, err, predicted in (("nearest", 30.0, 20), ("zernike", 10.0, 5 if particle < 4
                                       else 20), ("curves", 20.0, 12)):  # fmt: skip
-            rows.append(pd.DataFrame({"model": kind, "particle": particle,
+            rows.append(pd.DataFrame({"model": kind, "particle": particle, "z_nm": 100.0 * planes,
                                       "in_range": planes < predicted, "err_x_nm": 1.0,
                                       "err_y_nm": 1.0, "err_z_nm": err}))  # fmt: skip
     table = pd.concat(rows, ignore_index=True)
@@ -145,5 +172,5 @@ def test_a_model_that_loses_held_out_particles_is_counted_and_never_chosen():
     assert held_out == 10 and lost.to_dict() == {"curves": 0, "nearest": 0, "zernike": 4}
     summary = crossval_summary(table)
     assert summary.loc["zernike", "rmse_z_nm"] < summary.loc["nearest", "rmse_z_nm"]
-    assert choose_field_model(summary) == "nearest"  # zernike loses 4, curves covers 60 %
-    assert choose_field_model(summary.drop(index="zernike"), coverage=0.5) == "curves"
+    assert choose_field_model(table) == "nearest"  # zernike loses 4, curves covers 60 %
+    assert choose_field_model(table[table["model"] != "zernike"], coverage=0.5) == "curves"

@@ -21,17 +21,21 @@ of the particles' monotonic ranges), and the RMS of the held-out errors is ruled
 planes. :func:`choose_field_model` therefore ranks the models by the mean over the held-out
 planes of the total error of a typical emitter, ``sqrt(σ_fit² + err_z²)`` (``typical_z_nm``;
 σ_fit the Cramér–Rao σ_z of an emitter of :data:`TYPICAL_PHOTONS` photons imaged like the
-held-out particle at that plane, :func:`~latentz.calibration.precision.crlb_sigma_z`). It takes
-the best among the models no worse than ``nearest`` in that, in lateral RMSE and in coverage (the
-fraction of held-out planes it predicts), and that loses no held-out particle (predicts at least
-half the planes ``nearest`` predicts of each); ``nearest`` is always eligible, so the choice is
-never worse than it. A model that loses particles is named, with the count, in a warning. A
-table without σ_fit is ranked by the z RMSE.
+held-out particle at that plane, :func:`~latentz.calibration.precision.crlb_sigma_z`). The models
+compared are those that predict at least 95 % as many held-out planes as ``nearest`` and lose
+no held-out particle (predict at least half the planes ``nearest`` predicts of each), and they
+are compared on the planes that every one of them predicts: a model that predicts more planes
+far from focus, where every model errs most, would otherwise rank behind one that leaves them
+out. It takes the best of those no worse than ``nearest`` there in that and in lateral RMSE;
+``nearest`` is always eligible, so the choice is never worse than it. A model that loses
+particles is named, with the count, in a warning. A table without σ_fit is ranked by the z
+RMSE.
 """
 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterable
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -45,7 +49,8 @@ if TYPE_CHECKING:
 
 __all__ = ["CROSSVAL_COLUMNS", "LOST_SHARE", "MIN_FIELD_PARTICLES", "TYPICAL_PHOTONS",
            "crossval", "choose_field_model", "crossval_summary", "emitter_sigma_z",
-           "lost_particles", "predict", "resolve_auto", "smoothed_noise"]  # fmt: skip
+           "lost_particles", "predict", "resolve_auto", "shared_planes",
+           "smoothed_noise"]  # fmt: skip
 
 CROSSVAL_COLUMNS = ("model", "particle", "x", "y", "distance_px", "z_nm", "in_range",
                     "err_z_nm", "err_x_nm", "err_y_nm")  # fmt: skip
@@ -250,22 +255,43 @@ def lost_particles(table: pd.DataFrame) -> tuple[pd.Series, int]:
     return lost.astype(int), int(held.sum())
 
 
-def choose_field_model(summary: pd.DataFrame, *, coverage: float = 0.95) -> str:
-    """The model with the smallest typical z error (``typical_z_nm``; the z RMSE where that is
-    not known) among those no worse than ``nearest`` in it and in lateral RMSE, that predict at
-    least ``coverage`` x as many held-out planes as it and lose no held-out particle."""
+def choose_field_model(
+    table: pd.DataFrame, sigma_fit_nm: np.ndarray | None = None, *, coverage: float = 0.95
+) -> str:
+    """The model ``auto`` takes from a :func:`crossval` table (``sigma_fit_nm`` as
+    :func:`crossval_summary` takes it). The models that predict at least ``coverage`` x as many
+    held-out planes as ``nearest`` and lose no held-out particle are compared on the planes
+    that each of them predicts (:func:`shared_planes`): one that predicts more planes, far from
+    focus where every model errs most, is not judged on planes the others leave out. Of those
+    no worse than ``nearest`` there in typical z error (``typical_z_nm``; the z RMSE where
+    σ_fit is not known) and in lateral RMSE, the one with the smallest typical z error."""
+    whole = crossval_summary(table, sigma_fit_nm)
+    base = whole.loc["nearest"]
+    fair = whole[
+        (whole["in_range"] >= coverage * base["in_range"])
+        & (whole["lost"] == 0 if "lost" in whole else True)
+    ].index.union(["nearest"])
+    rows = shared_planes(table, fair)
+    sigma = None if sigma_fit_nm is None else np.asarray(sigma_fit_nm, dtype=np.float64)[rows]
+    summary = crossval_summary(table[rows], sigma)
     base = summary.loc["nearest"]
     known = "typical_z_nm" in summary and np.isfinite(summary["typical_z_nm"]).all()
     rank = "typical_z_nm" if known else "rmse_z_nm"
     eligible = summary[
-        (summary[rank] <= base[rank])
-        & (summary["rmse_xy_nm"] <= base["rmse_xy_nm"])
-        & (summary["in_range"] >= coverage * base["in_range"])
-        & (summary["lost"] == 0 if "lost" in summary else True)
+        (summary[rank] <= base[rank]) & (summary["rmse_xy_nm"] <= base["rmse_xy_nm"])
     ]
-    if eligible.empty:
-        return "nearest"
     return str(eligible[rank].idxmin())
+
+
+def shared_planes(table: pd.DataFrame, models: Iterable[str]) -> np.ndarray:
+    """Whether each row of a :func:`crossval` table is one of ``models``' prediction of a
+    held-out plane (its ``particle`` and ``z_nm``) that every one of them predicts."""
+    models = list(models)
+    ours = table["model"].isin(models).to_numpy() & table["in_range"].to_numpy(bool)
+    keys = pd.MultiIndex.from_frame(table[["particle", "z_nm"]])
+    predicted = pd.Series(table["model"].to_numpy()[ours], index=keys[ours])
+    count = predicted.groupby(level=[0, 1]).nunique()
+    return ours & keys.isin(count.index[count.to_numpy() == len(models)])
 
 
 def resolve_auto(cal: CalibrationView) -> str:
@@ -280,7 +306,8 @@ def resolve_auto(cal: CalibrationView) -> str:
         )
         return "nearest"
     table = cal.crossval
-    summary = crossval_summary(table, emitter_sigma_z(cal, table))
+    sigma = emitter_sigma_z(cal, table)
+    summary = crossval_summary(table, sigma)
     losing = summary[summary["lost"] > 0] if "lost" in summary else summary.iloc[:0]
     for model, row in losing.iterrows():
         warnings.warn(
@@ -290,4 +317,4 @@ def resolve_auto(cal: CalibrationView) -> str:
             UserWarning,
             stacklevel=3,
         )
-    return choose_field_model(summary)
+    return choose_field_model(table, sigma)
