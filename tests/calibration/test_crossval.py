@@ -127,6 +127,11 @@ def test_auto_compares_the_models_on_the_planes_each_of_them_predicts():
     assert choose_field_model(table, sigma) == "a"
 
 
+def test_auto_takes_nearest_where_the_models_share_no_held_out_plane():
+    table = _table(nearest=(40.0, 5.0, 0.0), a=(10.0, 4.0, 1.0))
+    assert choose_field_model(table) == "nearest"
+
+
 def test_auto_with_too_few_particles_says_so_and_uses_nearest():
     traces, _ = make_traces(MIN_FIELD_PARTICLES - 2, noise=0.02, seed=1)
     cal = calibrate_traces(traces, shape="rho", cull=False)

@@ -274,13 +274,15 @@ def choose_field_model(
     rows = shared_planes(table, fair)
     sigma = None if sigma_fit_nm is None else np.asarray(sigma_fit_nm, dtype=np.float64)[rows]
     summary = crossval_summary(table[rows], sigma)
+    if "nearest" not in summary.index:  # no held-out plane that every model compared predicts
+        return "nearest"
     base = summary.loc["nearest"]
     known = "typical_z_nm" in summary and np.isfinite(summary["typical_z_nm"]).all()
     rank = "typical_z_nm" if known else "rmse_z_nm"
     eligible = summary[
         (summary[rank] <= base[rank]) & (summary["rmse_xy_nm"] <= base["rmse_xy_nm"])
     ]
-    return str(eligible[rank].idxmin())
+    return str(eligible[rank].idxmin()) if len(eligible) else "nearest"
 
 
 def shared_planes(table: pd.DataFrame, models: Iterable[str]) -> np.ndarray:
