@@ -13,8 +13,9 @@ errors are against where the simulation put that molecule.
 Per density: molecules, recall (correct / molecules), the share of correct rows that are
 ``good``, and for the good one-emitter rows and the good rows of two-emitter fits: their number,
 z and lateral RMSE (nm) and the share whose x, y, z error lies within its reported 1σ. Then the
-good one-emitter rows by the distance (px) from their molecule to its nearest other molecule:
-where their errors come from. Writes ``results/bench_crowding.md``.
+good one-emitter rows by the distance (px) from their molecule to its nearest other molecule,
+all of them and split by whether the row's ROI overlaps another detection's (the rows whose errors
+the crowding factor scales): where their errors come from. Writes ``results/bench_crowding.md``.
 
 Run: ``python benchmarks/bench_crowding.py [--microscopes 2] [--first 0] [--frames 10]``.
 """
@@ -30,6 +31,7 @@ from _rounds import machine, write_results
 from bench_pairs import DENSITIES, FIELD, markdown
 from scipy.spatial import cKDTree
 
+from latentz.localization.pairs import crowded
 from latentz.simulate.molecules import random_microscope
 from latentz.validation.challenge import offset_pairs
 from latentz.validation.molecules import bead_calibration, localized_molecules
@@ -59,6 +61,8 @@ def matched(locs: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
         out[f"s{a}"] = rows[f"{a}_err_nm"].to_numpy()
     out["good"] = rows["good"].to_numpy(bool)
     out["pair"] = rows["pair"].to_numpy() >= 0
+    shares = crowded(locs, int(locs.attrs["roi_size"]))  # as crowding_factor reads it
+    out["shares_roi"] = shares[locs.index.get_indexer(pairs["locs_row"])]
     out["nearest_px"] = nearest_other(truth)[truth.index.get_indexer(pairs["truth_row"])]
     return out
 
@@ -103,12 +107,20 @@ def by_density(runs: list[dict]) -> pd.DataFrame:
 
 
 def by_nearest(runs: list[dict]) -> pd.DataFrame:
-    """`errors` of the good one-emitter rows by their molecule's nearest other molecule (px)."""
+    """`errors` of the good one-emitter rows by their molecule's nearest other molecule (px),
+    and by whether the row's ROI overlaps another detection's (the rows whose errors the
+    crowding factor scales, :mod:`latentz.localization.crowding`)."""
     rows = pd.concat([r["rows"] for r in runs], ignore_index=True)
     rows = rows[rows["good"] & ~rows["pair"]]
     bins = pd.cut(rows["nearest_px"], NEAREST_PX)
-    return pd.DataFrame([{"nearest molecule px": str(b), **errors(part)}
-                         for b, part in rows.groupby(bins, observed=True)])  # fmt: skip
+    table = []
+    for b, part in rows.groupby(bins, observed=True):
+        table.append({"nearest molecule px": str(b), "ROI overlaps a detection": "any",
+                      **errors(part)})  # fmt: skip
+        for shares, name in ((True, "yes"), (False, "no")):
+            table.append({"nearest molecule px": str(b), "ROI overlaps a detection": name,
+                          **errors(part[part["shares_roi"] == shares])})  # fmt: skip
+    return pd.DataFrame(table)
 
 
 def main() -> None:
