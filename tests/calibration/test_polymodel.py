@@ -5,6 +5,7 @@ import warnings
 import numpy as np
 import pytest
 from numpy.polynomial import Chebyshev, Polynomial
+from numpy.polynomial.chebyshev import chebval
 
 from latentz.calibration.polymodel import PolyModel
 
@@ -91,3 +92,25 @@ def test_leverage_is_how_much_each_residual_shrinks():
     spread = model.residuals(np.broadcast_to(x, noise.shape), noise)[:, 3:].std(axis=0)
     # each spread from 4,000 draws is known to 1/sqrt(8000) = 1.1 %
     np.testing.assert_allclose(spread, np.sqrt(1.0 - h[3:]), rtol=0.045)
+
+
+@pytest.mark.parametrize("order", [2, 5, 16])
+def test_evaluation_is_numpys_chebval_to_the_bit(order):
+    """Each row's series at its own points, one point or many, rows without a model NaN: the
+    same bits as NumPy's ``chebval`` of the row's coefficients at the scaled variable
+    ``t = (2 x - lo - hi) / (hi - lo)`` of the class's docstring."""
+    rng = np.random.default_rng(order)
+    coef = rng.normal(size=(50, order + 1))
+    coef[7] = np.nan
+    domain = np.column_stack([rng.uniform(-900.0, 0.0, 50), rng.uniform(1.0, 900.0, 50)])
+    model = PolyModel(coef, domain)
+    for x in (rng.uniform(-1200.0, 1200.0, 50), rng.uniform(-1200.0, 1200.0, (50, 9))):
+        got = model(x)
+        expected = np.array(
+            [
+                chebval((2.0 * row - lo - hi) / (hi - lo), c)
+                for c, (lo, hi), row in zip(coef, domain, x, strict=True)
+            ]
+        )
+        assert got.shape == x.shape
+        assert np.array_equal(got, expected, equal_nan=True)

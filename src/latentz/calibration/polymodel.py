@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 
@@ -28,6 +29,28 @@ def _scale(x: np.ndarray, domain: np.ndarray) -> np.ndarray:
     hi = domain[:, 1].reshape(shape)
     with np.errstate(divide="ignore", invalid="ignore"):  # invalid (NaN) models give NaN
         return (2.0 * x - lo - hi) / (hi - lo)
+
+
+@numba.njit(nogil=True, cache=True)
+def _clenshaw_rows(t: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Each row's Chebyshev series ``coef`` (n, k ≥ 3) at that row's points ``t`` (n, m): the
+    Clenshaw recursion of :func:`numpy.polynomial.chebyshev.chebval`, step for step (the same
+    bits), without its (n, m) temporary arrays per term, which bound it by memory traffic."""
+    n, m = t.shape
+    k = coef.shape[1]
+    out = np.empty((n, m))
+    for r in range(n):
+        for j in range(m):
+            x = t[r, j]
+            x2 = 2 * x
+            c0 = coef[r, k - 2]
+            c1 = coef[r, k - 1]
+            for i in range(3, k + 1):
+                tmp = c0
+                c0 = coef[r, k - i] - c1
+                c1 = tmp + c1 * x2
+            out[r, j] = c0 + c1 * x
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,8 +166,11 @@ class PolyModel:
         if xa.shape[0] != len(self):
             raise ValueError(f"Expected `x` to have {len(self)} rows, got shape {xa.shape}.")
         t = _scale(xa, self.domain)
-        c = self.coef.T.reshape(self.coef.shape[1], len(self), *([1] * (xa.ndim - 1)))
-        return cheb.chebval(t, c, tensor=False)
+        if self.order < 2 or xa.size == 0:
+            c = self.coef.T.reshape(self.coef.shape[1], len(self), *([1] * (xa.ndim - 1)))
+            return cheb.chebval(t, c, tensor=False)
+        rows = np.ascontiguousarray(t.reshape(len(self), -1))
+        return _clenshaw_rows(rows, np.ascontiguousarray(self.coef)).reshape(xa.shape)
 
     def derivative(self) -> PolyModel:
         """The derivative with respect to the unscaled variable (NaN for rows whose domain has
