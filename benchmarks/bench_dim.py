@@ -11,8 +11,10 @@ RMS error and its robust twin (1.4826 MAD) in units of the Cramér–Rao bound o
 model (x, y, photons, background, z through the calibration curves,
 :func:`latentz.validation.bounds.localization_bounds`, at the fitted z), the median bound, and
 how often the reported 1σ covers the error, and the localizations that are no molecule's.
-``--threshold`` sets the detection threshold. Writes ``results/bench_dim.md``
-(``bench_dim_threshold_<t>.md``).
+Beside latentz's z, the same for the yardstick :func:`latentz.validation.bounds.curves_fit_z`
+(``z curves``: z fitted by maximum likelihood through the calibration curves, which latentz does
+not do) over the same molecules. ``--threshold`` sets the detection threshold. Writes
+``results/bench_dim.md`` (``bench_dim_threshold_<t>.md``).
 
 Run: ``python benchmarks/bench_dim.py``.
 """
@@ -52,6 +54,11 @@ def summary(errors: pd.DataFrame) -> list[dict]:
             row[f"{axis} 1σ covers"] = float(
                 np.mean(np.abs(seen[f"{axis}_nm"]) < seen[f"{axis}_err_nm"])
             )
+        both = seen[np.isfinite(seen["z_curves_nm"])]
+        for name, column in (("z", "z_nm"), ("z curves", "z_curves_nm")):
+            ratio = both[column] / both["z_crlb_nm"]
+            row[f"{name} robust / CRLB, both"] = float(1.4826 * np.median(np.abs(ratio)))
+            row[f"{name} RMS / CRLB, both"] = float(np.sqrt(np.mean(ratio**2)))
         out.append(row)
     return out
 
@@ -70,6 +77,7 @@ def main() -> None:
         every.append(precision_against_bounds(
             microscope, calibration, rng, n_frames=args.frames, background=args.background,
             threshold=args.threshold, photons=(300.0, 3000.0), z_range_nm=(-400.0, 400.0),
+            curves_fit=True,
         ))  # fmt: skip
     table = markdown(pd.DataFrame(summary(pd.concat(every, ignore_index=True))))
     unmatched = sum(e.attrs["unmatched"] for e in every) / (args.microscopes * args.frames)

@@ -27,7 +27,7 @@ from latentz.simulate.molecules import (
     place_edge_molecules,
     place_molecules,
 )
-from latentz.validation.bounds import localization_bounds
+from latentz.validation.bounds import curves_fit_z, localization_bounds
 from latentz.validation.challenge import correct_rows
 
 __all__ = [
@@ -169,7 +169,7 @@ def edge_errors(
     axis, the inner molecules' median error, removed: a point molecule is not the calibration's
     bead) with their reported 1σ (``*_err_nm``)."""
     molecules = place_edge_molecules(rng, n_frames=n_frames, frame_shape=frame_shape, **placement)
-    truth, found, row = _localized_nearest(
+    truth, found, row, _ = _localized_nearest(
         molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=frame_shape
     )
     cut_x = truth["across"].to_numpy() == 0
@@ -203,11 +203,11 @@ def _localized_nearest(
     frame_shape: tuple[int, int],
     background: float = 20.0,
     threshold: float | None = None,
-) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray]:
+) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
     """The truth of ``molecules`` imaged by ``microscope``, localized with ``calibration`` and
     defaults (detection ``threshold`` as given): (truth, the localization nearest each molecule,
-    its position in the table or −1 where none lies within 2 px); ``attrs["rows"]`` of the
-    second holds the number of localizations."""
+    its position in the table or −1 where none lies within 2 px, the frames in ADU);
+    ``attrs["rows"]`` of the second holds the number of localizations."""
     frames, truth = molecule_frames(
         molecules, microscope, n_frames=n_frames, frame_shape=frame_shape,
         background=background, seed=int(rng.integers(2**31)),
@@ -218,7 +218,7 @@ def _localized_nearest(
     row = nearest_rows(truth, locs, radius_px=2.0)
     found = locs.iloc[np.maximum(row, 0)].reset_index(drop=True)
     found.attrs["rows"] = len(locs)
-    return truth, found, row
+    return truth, found, row, frames
 
 
 def nearest_rows(truth: pd.DataFrame, locs: pd.DataFrame, *, radius_px: float) -> np.ndarray:
@@ -246,6 +246,7 @@ def precision_against_bounds(
     isolation_px: float = 12.0,
     background: float = 20.0,
     threshold: float | None = None,
+    curves_fit: bool = False,
     **placement,
 ) -> pd.DataFrame:
     """Sparse molecules (:func:`~latentz.simulate.molecules.place_molecules` with
@@ -256,12 +257,14 @@ def precision_against_bounds(
     their reported 1σ (``*_err_nm``) and their Cramér–Rao bounds at the fitted z (``*_crlb_nm``,
     :func:`latentz.validation.bounds.localization_bounds`). Detection uses ``threshold``
     (default: localize's); ``attrs["unmatched"]`` counts the localizations that are no molecule's
-    nearest within 2 px (false detections and duplicates)."""
+    nearest within 2 px (false detections and duplicates). ``curves_fit``: also the z error of
+    the yardstick :func:`~latentz.validation.bounds.curves_fit_z` (``z_curves_nm``, its own
+    offset removed; NaN where the ROI leaves the frame)."""
     molecules = place_molecules(
         rng, n_frames=n_frames, frame_shape=field_shape,
         pixel_nm=microscope.optics.pixel_size_nm, density_per_um2=density_per_um2, **placement,
     )  # fmt: skip
-    truth, found, row = _localized_nearest(
+    truth, found, row, frames = _localized_nearest(
         molecules, microscope, calibration, rng, n_frames=n_frames, frame_shape=field_shape,
         background=background, threshold=threshold,
     )  # fmt: skip
@@ -282,7 +285,30 @@ def precision_against_bounds(
         out[f"{axis}_nm"] = np.where(usable, error - np.median(error[usable]), np.nan)
         out[f"{axis}_err_nm"] = np.where(usable, found[f"{axis}_err_nm"], np.nan)
         out[f"{axis}_crlb_nm"] = np.where(usable, bounds[:, k] * (px if axis != "z" else 1), np.nan)
+    if curves_fit:
+        z = _curves_fit_z(calibration, frames, found, usable) - truth["z_nm"].to_numpy()
+        out["z_curves_nm"] = z - np.nanmedian(z)
     out.attrs["unmatched"] = found.attrs["rows"] - len(np.unique(row[row >= 0]))
+    return out
+
+
+def _curves_fit_z(
+    calibration: Calibration, frames: np.ndarray, found: pd.DataFrame, rows: np.ndarray
+) -> np.ndarray:
+    """:func:`~latentz.validation.bounds.curves_fit_z` of the ``rows`` (bool) of ``found``
+    whose ROI, centred on the nearest pixel, lies inside the frame; NaN elsewhere (nm)."""
+    half = calibration.roi_size // 2
+    col, line = (np.rint(found[c].to_numpy()).astype(int) for c in ("x", "y"))
+    inside = (np.minimum(col, line) >= half) & (col < frames.shape[2] - half)
+    rows = np.flatnonzero(rows & inside & (line < frames.shape[1] - half))
+    rois = np.stack([frames[int(found["frame"].iat[k]), line[k] - half : line[k] + half + 1,
+                            col[k] - half : col[k] + half + 1] for k in rows])  # fmt: skip
+    start = found.iloc[rows][["x", "y", "amplitude", "background", "photons", "z_nm"]].to_numpy()
+    start[:, 0] -= col[rows] - half
+    start[:, 1] -= line[rows] - half
+    out = np.full(len(found), np.nan)
+    out[rows] = curves_fit_z(calibration, calibration.camera.to_photons(rois),
+                             found["cal_particle"].to_numpy()[rows], start)  # fmt: skip
     return out
 
 
