@@ -301,12 +301,14 @@ def _curves_fit_z(
     col, line = (np.rint(found[c].to_numpy()).astype(int) for c in ("x", "y"))
     inside = (np.minimum(col, line) >= half) & (col < frames.shape[2] - half)
     rows = np.flatnonzero(rows & inside & (line < frames.shape[1] - half))
+    out = np.full(len(found), np.nan)
+    if not rows.size:
+        return out
     rois = np.stack([frames[int(found["frame"].iat[k]), line[k] - half : line[k] + half + 1,
                             col[k] - half : col[k] + half + 1] for k in rows])  # fmt: skip
     start = found.iloc[rows][["x", "y", "amplitude", "background", "photons", "z_nm"]].to_numpy()
     start[:, 0] -= col[rows] - half
     start[:, 1] -= line[rows] - half
-    out = np.full(len(found), np.nan)
     out[rows] = curves_fit_z(calibration, calibration.camera.to_photons(rois),
                              found["cal_particle"].to_numpy()[rows], start)  # fmt: skip
     return out
