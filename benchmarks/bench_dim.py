@@ -13,7 +13,9 @@ model (x, y, photons, background, z through the calibration curves,
 how often the reported 1σ covers the error, and the localizations that are no molecule's.
 Beside latentz's z, the same for the yardstick :func:`latentz.validation.bounds.curves_fit_z`
 (``z curves``: z fitted by maximum likelihood through the calibration curves, which latentz does
-not do) over the same molecules. ``--threshold`` sets the detection threshold. Writes
+not do) over the same molecules (``both``), and the errors against the physical bound of each
+molecule, its microscope's own PSF (``PSF bound``, :func:`latentz.validation.bounds.
+psf_bounds`). ``--threshold`` sets the detection threshold. Writes
 ``results/bench_dim.md`` (``bench_dim_threshold_<t>.md``).
 
 Run: ``python benchmarks/bench_dim.py``.
@@ -59,6 +61,10 @@ def summary(errors: pd.DataFrame) -> list[dict]:
             ratio = both[column] / both["z_crlb_nm"]
             row[f"{name} robust / CRLB, both"] = float(1.4826 * np.median(np.abs(ratio)))
             row[f"{name} RMS / CRLB, both"] = float(np.sqrt(np.mean(ratio**2)))
+        row["z PSF bound nm"] = float(np.median(seen["z_psf_crlb_nm"]))
+        for name, column in (("x", "x_nm"), ("z", "z_nm"), ("z curves", "z_curves_nm")):
+            ratio = both[column] / both[f"{name[0]}_psf_crlb_nm"]
+            row[f"{name} robust / PSF bound, both"] = float(1.4826 * np.median(np.abs(ratio)))
         out.append(row)
     return out
 
@@ -77,7 +83,7 @@ def main() -> None:
         every.append(precision_against_bounds(
             microscope, calibration, rng, n_frames=args.frames, background=args.background,
             threshold=args.threshold, photons=(300.0, 3000.0), z_range_nm=(-400.0, 400.0),
-            curves_fit=True,
+            yardsticks=True,
         ))  # fmt: skip
     table = markdown(pd.DataFrame(summary(pd.concat(every, ignore_index=True))))
     unmatched = sum(e.attrs["unmatched"] for e in every) / (args.microscopes * args.frames)

@@ -24,7 +24,7 @@ def dim():
         calibration = bead_calibration(microscope, seed)
         tables.append(precision_against_bounds(
             microscope, calibration, rng, n_frames=20, photons=(300.0, 1000.0),
-            z_range_nm=(-400.0, 400.0), curves_fit=True,
+            z_range_nm=(-400.0, 400.0), yardsticks=True,
         ))  # fmt: skip
     errors = pd.concat(tables, ignore_index=True)
     return errors[errors["isolated"].to_numpy()]
@@ -75,3 +75,15 @@ def test_a_fit_of_z_through_the_curves_takes_back_little_of_the_distance(dim):
 
     ratio = robust("z_curves_nm") / robust("z_nm")
     assert 0.75 <= ratio <= 1.1, (ratio, len(both))
+
+
+@pytest.mark.parametrize("axis, most", [("x", 1.4), ("y", 1.4), ("z", 1.6)])
+def test_dim_precision_lies_near_the_bound_of_the_microscopes_own_psf(dim, axis, most):
+    """Against the physical bound (the simulated microscope's own PSF, ``*_psf_crlb_nm``), which
+    is not the Gaussian's: bench_dim puts x at 0.94-1.18x and z at 1.12-1.38x it (robust; x, y, z
+    1.05, 1.26, 1.36 here)."""
+    seen = dim[np.isfinite(dim["z_nm"]) & np.isfinite(dim[f"{axis}_psf_crlb_nm"])]
+    ratio = (seen[f"{axis}_nm"] / seen[f"{axis}_psf_crlb_nm"]).to_numpy()
+    robust = 1.4826 * np.median(np.abs(ratio))
+    floor = 1.0 - 2.6 * 1.17 / np.sqrt(2 * len(ratio))
+    assert floor <= robust <= most, (axis, robust, len(ratio))

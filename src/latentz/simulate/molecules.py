@@ -33,6 +33,7 @@ __all__ = [
     "place_molecules",
     "place_edge_molecules",
     "molecule_frames",
+    "molecule_patches",
 ]
 
 _BATCH = 512  # molecules rendered per batch (memory: batch × patch² × complex pupil)
@@ -155,6 +156,33 @@ def place_edge_molecules(
     return pd.concat(tables, ignore_index=True)
 
 
+def molecule_patches(
+    microscope: Microscope, x: np.ndarray, y: np.ndarray, z_nm: np.ndarray, *,
+    size: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Noise-free images (fraction of photons per pixel, (n, size, size)) of point molecules at
+    (x, y) (frame px) and ``z_nm`` (height above a point emitter's best focus, nm), and their
+    origins ((n, 2) row, column in the frame): what :func:`molecule_frames` adds to its frames.
+    ``size`` (px) by default holds the most defocused of them."""
+    optics, aberrations, _ = microscope
+    coef = aberrations.at(np.array([0.0, 1e6]), np.array([0.0, 1e6]))
+    if not np.allclose(coef[0], coef[1]):
+        raise ValueError(
+            "Expected aberrations that are the same across the field (AberrationMap.constant)."
+        )
+    focus = float(best_focus_defocus_nm(optics, aberrations, [0.0], [0.0], diameter_nm=0.0)[0])
+    x, y, z = (np.asarray(v, np.float64) for v in (x, y, z_nm))
+    if size is None:
+        size = patch_size_px(optics, float(np.max(np.abs(z), initial=0.0)) + abs(focus), 0.0)
+    parts = [render_patches(
+        optics, aberrations, x=x[part], y=y[part], field_x=x[part], field_y=y[part],
+        defocus_nm=z[part] + focus, diameter_nm=0.0, size=size,
+    ) for part in (slice(k, k + _BATCH) for k in range(0, len(z), _BATCH))]  # fmt: skip
+    if not parts:
+        return np.empty((0, size, size)), np.empty((0, 2), np.int64)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
 def molecule_frames(
     molecules: pd.DataFrame,
     microscope: Microscope,
@@ -167,25 +195,13 @@ def molecule_frames(
     """Camera frames (uint16 ADU) of point ``molecules`` (``frame, x, y, z_nm, photons``; z is the
     height above a point emitter's best focus, nm) over ``background`` photoelectrons per pixel,
     and the truth: ``molecules`` with ``x_nm, y_nm`` (pixel ``[i, j]`` centred at ``x = j``)."""
-    optics, aberrations, camera = microscope
-    coef = aberrations.at(np.array([0.0, 1e6]), np.array([0.0, 1e6]))
-    if not np.allclose(coef[0], coef[1]):
-        raise ValueError(
-            "Expected aberrations that are the same across the field (AberrationMap.constant)."
-        )
-    focus = float(best_focus_defocus_nm(optics, aberrations, [0.0], [0.0], diameter_nm=0.0)[0])
-    z = molecules["z_nm"].to_numpy(np.float64)
-    size = patch_size_px(optics, float(np.max(np.abs(z))) + abs(focus), 0.0)
+    optics, _, camera = microscope
+    patches, origins = molecule_patches(
+        microscope, molecules["x"], molecules["y"], molecules["z_nm"]
+    )
     expected = np.full((int(n_frames), *frame_shape), float(background))
-    for start in range(0, len(molecules), _BATCH):
-        part = molecules.iloc[start : start + _BATCH]
-        x, y = part["x"].to_numpy(np.float64), part["y"].to_numpy(np.float64)
-        patches, origins = render_patches(
-            optics, aberrations, x=x, y=y, field_x=x, field_y=y,
-            defocus_nm=part["z_nm"].to_numpy(np.float64) + focus, diameter_nm=0.0, size=size,
-        )  # fmt: skip
-        frame = part["frame"].to_numpy(np.int64)
-        add_patches(expected, frame, patches, origins, part["photons"].to_numpy(np.float64))
+    add_patches(expected, molecules["frame"].to_numpy(np.int64), patches, origins,
+                molecules["photons"].to_numpy(np.float64))  # fmt: skip
     frames = expose(expected, camera, np.random.default_rng(seed))
     truth = molecules.reset_index(drop=True).copy()
     truth["x_nm"] = truth["x"] * optics.pixel_size_nm

@@ -8,10 +8,14 @@ Jacobian of (x, y, A, B, wx, wy, ρ) in them, with ``A = N / (2π wx wy sqrt(1 �
 unbiased estimator that uses the curves does better; latentz fits the seven parameters first and
 reads z from the shape, so its errors lie at or above these bounds.
 
-:func:`curves_fit_z` is the yardstick between the two: z fitted by maximum likelihood with the
-five unknowns, the widths and ρ following the curves (at the spot's brightness). It is not
-latentz's readout; it shows how much of the distance to the bound a fit through the curves
-would take back, and how much belongs to the Gaussian model itself on a PSF that is not one.
+Those are the Gaussian's bounds. :func:`psf_bounds` gives the physical ones, from the simulated
+microscope's own PSF: what any estimator of a point emitter could reach.
+
+:func:`curves_fit_z` is a yardstick between the Gaussian's bound and latentz: z fitted by maximum
+likelihood with the five unknowns, the widths and ρ following the curves (at the spot's
+brightness). It is not latentz's readout; it shows how much of the distance to the bound a fit
+through the curves would take back, and how much belongs to the Gaussian model itself on a PSF
+that is not one.
 """
 
 from __future__ import annotations
@@ -22,11 +26,15 @@ from scipy.optimize import minimize
 from latentz.calibration import Calibration
 from latentz.calibration.brightness_shifts import shape_params_shift
 from latentz.fit import fisher_information, render_rois
+from latentz.simulate.molecules import Microscope, molecule_patches
 
-__all__ = ["curves_fit_z", "localization_bounds"]
+__all__ = ["curves_fit_z", "localization_bounds", "psf_bounds"]
 
 #: Step of the curves' derivative in z, nm.
 _DZ_NM = 10.0
+
+#: Steps of :func:`psf_bounds`' central differences in x, y (px) and z (nm).
+_DXY_PX, _DZ_PSF_NM = 0.02, 5.0
 
 #: z (nm) at which :func:`curves_fit_z` starts a second search, and its simplex's first steps
 #: in x, y (px), ln photons, background (photoelectrons per pixel) and z (nm).
@@ -118,3 +126,40 @@ def _curves_nll(q: np.ndarray, calibration: Calibration, roi: np.ndarray, partic
     offset = calibration.camera.readnoise**2  # read noise as a Poisson shift
     mu = render_rois(params, shape=calibration.roi_size)[0] + offset
     return float(np.sum(mu - (roi + offset) * np.log(mu)))
+
+
+def psf_bounds(
+    microscope: Microscope,
+    x: np.ndarray,
+    y: np.ndarray,
+    z_nm: np.ndarray,
+    photons: np.ndarray,
+    background: float,
+    *,
+    size: int,
+) -> np.ndarray:
+    """(n, 3) Cramér–Rao bounds of x, y (px) and z (nm) of point emitters at (x, y) (frame
+    px) and ``z_nm`` (height above a point's best focus, as
+    :func:`~latentz.simulate.molecules.molecule_frames` places them), of ``photons`` over
+    ``background`` photoelectrons per pixel, imaged by ``microscope``'s own PSF in a ``size``-px
+    window about each, with its camera's read noise (as a Poisson shift). Five unknowns: x, y,
+    photons, background and z, the derivatives by central differences (:data:`_DXY_PX`,
+    :data:`_DZ_PSF_NM`). Each sub-pixel position is kept two steps inside its pixel, so that the
+    window does not move between the differences."""
+    col, row = np.floor(x), np.floor(y)
+    x = col + np.clip(np.asarray(x, float) - col, 2 * _DXY_PX, 1 - 2 * _DXY_PX)
+    y = row + np.clip(np.asarray(y, float) - row, 2 * _DXY_PX, 1 - 2 * _DXY_PX)
+    steps = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1],
+                      [0, 0, -1]]) * np.array([_DXY_PX, _DXY_PX, _DZ_PSF_NM])  # fmt: skip
+    at = (np.stack([x, y, np.asarray(z_nm, float)], axis=1)[:, None] + steps).reshape(-1, 3)
+    patches, _ = molecule_patches(microscope, at[:, 0], at[:, 1], at[:, 2], size=size)
+    patches = patches.reshape(len(x), len(steps), size * size)
+    n = np.asarray(photons, float)[:, None]
+    slopes = [n * (patches[:, 2 * k + 1] - patches[:, 2 * k + 2]) / (2 * h)
+              for k, h in enumerate((_DXY_PX, _DXY_PX, _DZ_PSF_NM))]  # fmt: skip
+    # d mu / d (x, y, N, B, z), each pixel
+    jac = np.stack([slopes[0], slopes[1], patches[:, 0], np.ones_like(slopes[0]), slopes[2]],
+                   axis=2)  # fmt: skip
+    weights = 1.0 / (n * patches[:, 0] + background + microscope.camera.readnoise**2)
+    info = np.matmul((jac * weights[:, :, None]).transpose(0, 2, 1), jac)
+    return np.sqrt(np.diagonal(np.linalg.inv(info), 0, 1, 2)[:, [0, 1, 4]])

@@ -27,7 +27,7 @@ from latentz.simulate.molecules import (
     place_edge_molecules,
     place_molecules,
 )
-from latentz.validation.bounds import curves_fit_z, localization_bounds
+from latentz.validation.bounds import curves_fit_z, localization_bounds, psf_bounds
 from latentz.validation.challenge import correct_rows
 
 __all__ = [
@@ -246,7 +246,7 @@ def precision_against_bounds(
     isolation_px: float = 12.0,
     background: float = 20.0,
     threshold: float | None = None,
-    curves_fit: bool = False,
+    yardsticks: bool = False,
     **placement,
 ) -> pd.DataFrame:
     """Sparse molecules (:func:`~latentz.simulate.molecules.place_molecules` with
@@ -257,9 +257,11 @@ def precision_against_bounds(
     their reported 1σ (``*_err_nm``) and their Cramér–Rao bounds at the fitted z (``*_crlb_nm``,
     :func:`latentz.validation.bounds.localization_bounds`). Detection uses ``threshold``
     (default: localize's); ``attrs["unmatched"]`` counts the localizations that are no molecule's
-    nearest within 2 px (false detections and duplicates). ``curves_fit``: also the z error of
-    the yardstick :func:`~latentz.validation.bounds.curves_fit_z` (``z_curves_nm``, its own
-    offset removed; NaN where the ROI leaves the frame)."""
+    nearest within 2 px (false detections and duplicates). ``yardsticks``: also the z error of
+    :func:`~latentz.validation.bounds.curves_fit_z` (``z_curves_nm``, its own offset removed;
+    NaN where the ROI leaves the frame) and the physical bounds of the microscope's own PSF
+    (``x_psf_crlb_nm``, ``y_psf_crlb_nm``, ``z_psf_crlb_nm``,
+    :func:`~latentz.validation.bounds.psf_bounds`, in a window of the calibration's ROI)."""
     molecules = place_molecules(
         rng, n_frames=n_frames, frame_shape=field_shape,
         pixel_nm=microscope.optics.pixel_size_nm, density_per_um2=density_per_um2, **placement,
@@ -285,9 +287,16 @@ def precision_against_bounds(
         out[f"{axis}_nm"] = np.where(usable, error - np.median(error[usable]), np.nan)
         out[f"{axis}_err_nm"] = np.where(usable, found[f"{axis}_err_nm"], np.nan)
         out[f"{axis}_crlb_nm"] = np.where(usable, bounds[:, k] * (px if axis != "z" else 1), np.nan)
-    if curves_fit:
+    if yardsticks:
         z = _curves_fit_z(calibration, frames, found, usable) - truth["z_nm"].to_numpy()
         out["z_curves_nm"] = z - np.nanmedian(z)
+        physical = np.full((len(truth), 3), np.nan)
+        physical[usable] = psf_bounds(
+            microscope, *(truth[c].to_numpy()[usable] for c in ("x", "y", "z_nm", "photons")),
+            background, size=calibration.roi_size,
+        )  # fmt: skip
+        for k, axis in enumerate("xyz"):
+            out[f"{axis}_psf_crlb_nm"] = physical[:, k] * (px if axis != "z" else 1)
     out.attrs["unmatched"] = found.attrs["rows"] - len(np.unique(row[row >= 0]))
     return out
 
