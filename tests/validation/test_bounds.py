@@ -48,7 +48,7 @@ def test_curves_fit_z_reaches_the_bound_when_its_model_is_the_truth():
     # an efficient estimator: mean square of error / bound near 1 (1.37 here, perhaps because
     # the curves, interpolated between planes 25 nm apart, change slope from one interval to
     # the next, which the bound's ±10 nm difference need not see; a fit that kept the start's
-    # 150 nm error would give about 400), and no bias beyond 3 standard errors
+    # 150 nm error would give several hundred), and no bias beyond 3 standard errors
     assert 0.6 <= np.mean(ratio**2) <= 1.5, np.mean(ratio**2)
     assert abs(np.mean(ratio)) <= 3 / np.sqrt(len(ratio))
 
