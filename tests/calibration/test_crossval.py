@@ -1,11 +1,14 @@
 """Cross-validation of the widefield prediction, field_model="auto", and the stored table."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pandas as pd
 import pytest
 from calib_synthetic import make_traces
 
 from latentz.calibration import Calibration, calibrate_traces
+from latentz.calibration import crossval as crossval_module
 from latentz.calibration.crossval import (
     MIN_FIELD_PARTICLES,
     choose_field_model,
@@ -179,3 +182,13 @@ def test_a_model_that_loses_held_out_particles_is_counted_and_never_chosen():
     assert summary.loc["zernike", "rmse_z_nm"] < summary.loc["nearest", "rmse_z_nm"]
     assert choose_field_model(table) == "nearest"  # zernike loses 4, curves covers 60 %
     assert choose_field_model(table[table["model"] != "zernike"], coverage=0.5) == "curves"
+
+    # `auto` names the losing model and its count, in whole particles
+    view = SimpleNamespace(kept=np.arange(MIN_FIELD_PARTICLES), crossval=table)
+    with pytest.warns(UserWarning, match=r"'zernike' loses 4 of 10 held-out") as caught:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(
+                crossval_module, "emitter_sigma_z", lambda cal, t: np.full(len(t), np.nan)
+            )
+            assert crossval_module.resolve_auto(view) == "nearest"
+    assert len(caught) == 1

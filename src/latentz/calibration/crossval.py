@@ -308,15 +308,13 @@ def resolve_auto(cal: CalibrationView) -> str:
         )
         return "nearest"
     table = cal.crossval
-    sigma = emitter_sigma_z(cal, table)
-    summary = crossval_summary(table, sigma)
-    losing = summary[summary["lost"] > 0] if "lost" in summary else summary.iloc[:0]
-    for model, row in losing.iterrows():
+    lost, held_out = lost_particles(table)
+    for model, count in lost[lost > 0].items():
         warnings.warn(
-            f"field_model='auto': {model!r} loses {row['lost']} of {row['held_out']} held-out "
+            f"field_model='auto': {model!r} loses {count} of {held_out} held-out "
             f"calibration particles (it predicts under half the planes 'nearest' predicts of "
             f"them), so it is not chosen.",
             UserWarning,
             stacklevel=3,
         )
-    return choose_field_model(table, sigma)
+    return choose_field_model(table, emitter_sigma_z(cal, table))
