@@ -18,6 +18,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from latentz.calibration import Calibration, calibrate
+from latentz.detect import cut_rois
 from latentz.localization import localize
 from latentz.simulate import calibration_dataset
 from latentz.simulate.aberrations import AberrationMap
@@ -313,8 +314,8 @@ def _curves_fit_z(
     out = np.full(len(found), np.nan)
     if not rows.size:
         return out
-    rois = np.stack([frames[int(found["frame"].iat[k]), line[k] - half : line[k] + half + 1,
-                            col[k] - half : col[k] + half + 1] for k in rows])  # fmt: skip
+    rois = cut_rois(frames, found["frame"].to_numpy()[rows], line[rows] - half, col[rows] - half,
+                    calibration.roi_size)  # fmt: skip
     start = found.iloc[rows][["x", "y", "amplitude", "background", "photons", "z_nm"]].to_numpy()
     start[:, 0] -= col[rows] - half
     start[:, 1] -= line[rows] - half
