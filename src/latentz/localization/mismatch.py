@@ -20,8 +20,9 @@ z readout cannot absorb are measured over the table's converged, unique, located
 - **the widths**, each spot's carried to its calibration particle's brightness by the
   calibration's own dimmed refits (:mod:`latentz.calibration.dimming`: how the Gaussian fit of
   this microscope's PSF widens or narrows as the emitter dims, which differs from microscope
-  to microscope), against the calibration's at the spot's z, two ways: the median log ratio
-  of the mean widths
+  to microscope), against the calibration's at the spot's z, over the brighter half of the
+  spots (a dim spot's z readout absorbs a width scale), two ways: the median log ratio of the
+  mean widths
   (another pixel size scales every width up or down), and the median **blur**, the calibration's
   squared widths less the spot's (nm², the mean over x and y), read as the σ of a blur: a
   particle's image is the PSF blurred by the particle (σ = 0.22 × its diameter for a sphere,
@@ -84,19 +85,21 @@ AXIS_CHI2_CAP = 13.8
 #: 200–300 checked spots of each table of benchmarks/bench_wrong_calibration.py, so that the
 #: hits and false alarms measured there hold, while the check costs at most about 0.3 s of CPU.
 AXIS_SPOTS = 400
-#: The spots' log width ratio (at the calibration's brightness) above which they are wider than
-#: a right calibration's: 100 nm beads against point molecules of 10³–10⁴ photons give −0.053 to
-#: −0.018 (±0.003–0.005) on 8 random microscopes of 20–90 nm RMS astigmatism, point particles
-#: (draw 17) and 161 nm beads (draw 19) against point emitters on the high-NA family draws (their
-#: default calibrations and test frames, full and ci size) −0.008 to +0.005 (±0.002–0.015);
-#: another pixel size (1.25x) gives +0.074 to +0.078 (benchmarks/bench_wrong_calibration.py).
+#: The log width ratio (at the calibration's brightness) of the brighter half of the spots
+#: above which they are wider than a right calibration's: 100 nm beads against point molecules
+#: of 10³–10⁴ photons give −0.056 to −0.011 (±0.003–0.014) on the 21 right calibrations of
+#: benchmarks/bench_wrong_calibration.py (3–90 nm RMS astigmatism); on the high-NA family draws
+#: 17 (point particles) and 19 (161 nm beads) against point emitters (their default calibrations
+#: and test frames) +0.005 ± 0.003 and −0.028 ± 0.004 at the full size, −0.009 ± 0.016 for
+#: draw 17 at the ci size; another pixel size (1.25x) gives +0.068 to +0.078.
 LOG_WIDTH_LIMIT = 0.04
 #: Blur (σ, nm) by which the spots' widths may fall short of the calibration's: 100 nm beads
-#: against point molecules of 10³–10⁴ photons give +30 to +39 nm (±1–3 nm) on 8 random
-#: microscopes of 20–90 nm RMS astigmatism; on the high-NA family draws 17 (point particles) and
-#: 19 (161 nm beads, whose blur is 35 nm) ±19 nm; a calibration at 1.2x the wavelength gives +64
-#: to +74 nm on 12 (benchmarks/bench_wrong_calibration.py). 50 nm is the blur of a 220 nm
-#: sphere.
+#: against point molecules of 10³–10⁴ photons give +27 to +40 nm (±2–6 nm) on the 21 right
+#: calibrations, and a calibration at 1.2x the wavelength +62 to +74 nm on 21
+#: (benchmarks/bench_wrong_calibration.py); family draw 17 (point particles) −17 nm. 50 nm is the
+#: blur of a 220 nm sphere. Family draw 19's 161 nm beads blur by 35 nm as spheres, but its
+#: point emitters fall short of them by 61 ± 5 nm at NA 1.49: a calibration on beads that large,
+#: without their diameter (``calibrate(..., particle_diameter_nm=)``), is blamed there.
 BLUR_LIMIT_NM = 50.0
 #: Change of a spot's log mean width per unit of log photons, for calibrations without dimmed
 #: refits only (files written before them): dim spots fit narrower with a scalar PSF (the
@@ -105,9 +108,9 @@ BLUR_LIMIT_NM = 50.0
 #: instead (family draws 17 and 19, oil NA 1.47 and 1.49), which the refits measure.
 PHOTON_SLOPE = 0.035
 #: Standard errors by which a measurement must lie beyond its limit to blame the calibration
-#: (the width limits lie 1.3 or more standard errors beyond every right calibration measured:
-#: the least, the blur of family draw 19's 22 spots at the ci size, −377 ± 2250 nm² against
-#: the limit's 2500 nm²).
+#: (the width limits lie 1.5 or more standard errors beyond every right calibration of 100 nm
+#: beads or points measured: the least, the blur of family draw 17's 21 spots at the ci size,
+#: 389 ± 1328 nm² against the limit's 2500 nm²).
 SIGNIFICANCE = 1.0
 #: Fewest checked spots that measure anything.
 MIN_SPOTS = 20
@@ -314,11 +317,15 @@ def _particle_medians(values: np.ndarray, particle: np.ndarray) -> tuple[np.ndar
 
 
 def _widths(table: pd.DataFrame, cal: Calibration) -> tuple[float, float, float, float]:
-    """The spots' median log mean-width ratio over the calibration at their z and their
-    median blur (nm², the calibration's mean squared width less the spot's), each with its
-    standard error, the spots' and the calibration's own (:func:`_calibration_se`) in
-    quadrature; every spot's widths carried to its particle's brightness
-    (:func:`_carried_shapes`)."""
+    """The median log mean-width ratio over the calibration at their z and the median blur
+    (nm², the calibration's mean squared width less the spot's) of the brighter half of the
+    spots, each with its standard error, the spots' and the calibration's own
+    (:func:`_calibration_se`) in quadrature; every spot's widths carried to its particle's
+    brightness (:func:`_carried_shapes`). A dim spot's z readout absorbs much of a width scale:
+    its noisy shape lets z slide to where the curves are as wide as the spot (a calibration at
+    1.25x the pixel size: +0.02 below 3,000 photons, +0.105 above 6,000, on one microscope)."""
+    photons = table["photons"].to_numpy(float)
+    table = table[photons >= np.nanmedian(photons)]
     wx, wy, _ = _carried_shapes(table, cal)
     mean, square = _curve_widths(cal, table["cal_particle"].to_numpy(int),
                                  table["z_nm"].to_numpy(float))  # fmt: skip
