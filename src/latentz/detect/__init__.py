@@ -15,9 +15,10 @@ from latentz.detect.api import (
     detect_arrays,
     edge_noise_gain,
     find_peaks,
-    noise_level,
+    pixel_noise,
     roi_corners,
     roi_windows,
+    white_noise_gain,
 )
 
 __all__ = [
@@ -31,7 +32,8 @@ __all__ = [
     "detect_arrays",
     "edge_noise_gain",
     "find_peaks",
-    "noise_level",
+    "pixel_noise",
     "roi_corners",
     "roi_windows",
+    "white_noise_gain",
 ]

@@ -6,11 +6,10 @@ same emitters:
 0. the frames go to the GPU as stored (uint16 from a camera: a quarter of float64's bytes) and
    become photoelectrons there, ``(adu - offset) x gain / flatfield``, as the CPU kernels convert
    each pixel where they read it;
-1. band-pass ``G(sigma) - B(B(B(frame)))``: a Gaussian of ``sigma`` (scipy's sampled kernel,
-   radius ``int(4 sigma + 0.5)``) minus three box filters standing in for ``G(5 sigma)``, each a
-   separable 1D correlation with the frame's edge pixels repeated (scipy's mode "nearest");
-2. noise: 1.4826 x the median absolute deviation of the filtered frame (every other pixel in each
-   direction above 256 x 256 pixels), taken on the host from a subsample the GPU makes;
+1. band-pass as :func:`latentz.detect.band_pass`: ``G(sigma)`` minus the wide background (block
+   means blurred on the shrunk grid, read back bilinearly), each Gaussian a separable 1D
+   correlation with the frame's edge pixels repeated;
+2. noise: :func:`latentz.detect.band_noise` of the frames, on the host (a sparse grid of pixels);
 3. a local maximum is the largest value within ``min_distance`` pixels and above
    ``threshold x noise``; the GPU lists them, the host orders them as ``np.nonzero`` does;
 4. the maxima of one spot merged and close pairs flagged on the host (a few numbers per spot),
@@ -33,16 +32,15 @@ from latentz._shared.cuda_buffers import batch_size, buffer_pair, device_buffer
 from latentz._shared.validate import check_int, check_positive
 from latentz.detect import _kernels as _detect_kernels
 from latentz.detect.api import (
-    _MAD_TO_SIGMA,
     Detections,
     _camera_terms,
+    band_noise,
     check_frames,
     check_noise,
     default_threshold,
     edge_noise_gain,
     filter_plan,
     merge_maxima,
-    noise_stride,
     roi_corners,
 )
 
@@ -142,13 +140,6 @@ def _subtract_background(small, background, factor, out):
 
 
 @cuda.jit
-def _subsample(src, step, dst):
-    t, i, j = cuda.grid(3)
-    if t < dst.shape[0] and i < dst.shape[1] and j < dst.shape[2]:
-        dst[t, i, j] = src[t, i * step, j * step]
-
-
-@cuda.jit
 def _peaks(filtered, limit, gain_rows, gain_cols, reach, count, out):
     """List ``(t, i, j, value)`` where ``filtered`` is the maximum within ``reach`` px and above
     ``limit[t] * gain_rows[i] * gain_cols[j]``; ``count[0]`` counts them (also those beyond the
@@ -206,20 +197,6 @@ def _band_pass(d_frames: Any, sigma: float, work: tuple[Any, Any, Any]) -> Any:
     _correlate[small_grid, small_block](blurred, shrunk, wide, 2)
     _subtract_background[grid, block](b, shrunk, factor, a)
     return a
-
-
-def _noise(d_filtered: Any) -> np.ndarray:
-    """Robust noise of each filtered frame, as `latentz.detect.noise_level`."""
-    n_t, height, width = d_filtered.shape
-    step = noise_stride((height, width))
-    shape = (n_t, -(-height // step), -(-width // step))
-    d_sub = cuda.device_array(shape)
-    grid, block = _grid(shape)
-    _subsample[grid, block](d_filtered, step, d_sub)
-    values = d_sub.copy_to_host().reshape(n_t, -1)
-    centre = np.median(values, axis=1, keepdims=True)
-    noise = _MAD_TO_SIGMA * np.median(np.abs(values - centre), axis=1)
-    return np.where(noise > 0, noise, 1.0)  # a flat frame, as latentz.detect
 
 
 def _find_peaks(d_filtered: Any, limit: np.ndarray, sigma: float, reach: int) -> np.ndarray:
@@ -298,7 +275,11 @@ def detect_arrays_cuda(
         grid, block = _grid(d_batch.shape)
         _to_photons[grid, block](d_raw[:m], offset, gain, d_scale, d_batch)
         filtered = _band_pass(d_batch, sigma, tuple(w[:m] for w in work))
-        noise = _noise(filtered) if noise_known is None else noise_known[first : first + m]
+        noise = (
+            noise_known[first : first + m]
+            if noise_known is not None
+            else band_noise(stack[first : first + m], sigma=sigma, camera=camera)
+        )
         peaks = _find_peaks(filtered, threshold * noise, sigma, reach)
         t, rows, cols = np.ascontiguousarray(peaks[:, :3].T, dtype=np.int64)
         values = peaks[:, 3].copy()

@@ -1,7 +1,7 @@
 """numba kernels of detection: camera transform, band-pass, noise, local maxima, merging, ROIs.
 
-The NumPy reference twins are :func:`latentz.detect.band_pass`, :func:`latentz.detect.noise_level`
-and :func:`latentz.detect.find_peaks`; the filter is defined once, by
+The NumPy reference twins are :func:`latentz.detect.band_pass` and
+:func:`latentz.detect.find_peaks`; the filter is defined once, by
 :func:`latentz.detect.filter_plan`. Frames come in as they are stored (uint16 ADU, or float
 photoelectrons) and each pixel is converted to photoelectrons, ``(value - offset) * gain`` or
 ``(value - offset) * scale[i, j]`` with ``scale = gain / flatfield``, where it is read: no
@@ -20,10 +20,8 @@ filtered vertically, minus the background read back bilinearly) goes into a seco
 some, only the spans of `_SPAN` columns that do are compared with their neighbours). Memory is
 a few rows per task; the band-passed frame is never stored.
 
-The threshold is not known while the rows pass: the pass writes the band-passed frame at the
-strided pixels of :func:`latentz.detect.noise_level` (their robust spread is taken afterwards,
-in NumPy) and keeps the maxima above a lower floor, from a rough noise level of the task's
-pixels on a sparse grid (`_rough_noise`), unless the noise is given.
+The threshold is known before the pass: the noise comes from the pixels
+(:func:`latentz.detect.band_noise`, in NumPy on a sparse grid).
 
 The maxima of one wide spot are merged afterwards, on one thread (a few dozen per frame: waking
 the other threads would cost more than the work): `count_higher` and `list_higher` pair each
@@ -252,31 +250,45 @@ def _background_row(
     return made
 
 
-#: Pixels apart of the second differences of `_rough_noise`.
-_ROUGH_GAP = 8
+@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
+def neighbour_differences(frames, offset, gain, scale, step, out):
+    """``out[t, p, q]``: the photoelectrons of pixel ``(1 + p step, 1 + q step)`` of frame ``t``
+    less the mean of its eight neighbours, times 9 / 8 (each pixel converted where it is read,
+    as `detect_frames` does)."""
+    for t in numba.prange(frames.shape[0]):
+        frame = frames[t]
+        for p in range(out.shape[1]):
+            i = 1 + p * step
+            for q in range(out.shape[2]):
+                j = 1 + q * step
+                around = np.float32(0.0)
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        around += _photon_at(frame, offset, gain, scale, i + di, j + dj)
+                out[t, p, q] = 1.125 * _photon_at(frame, offset, gain, scale, i, j) - 0.125 * around
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _rough_noise(frame, offset, gain, scale, a, b, n_points, mad_to_sigma):
-    """A rough noise level of the pixels of rows ``a:b`` of ``frame`` (photoelectrons), from a
-    grid of about ``n_points`` pixels: the robust spread (``mad_to_sigma`` x MAD) of the second
-    differences ``p(i, j) - (p(i, j - g) + p(i, j + g)) / 2`` (``g`` = `_ROUGH_GAP` px: a
-    smooth background cancels), over sqrt(1.5)."""
-    w = frame.shape[1]
-    step = max(1, int(math.sqrt((b - a) * w / n_points)))
-    n_rows = max(1, (b - a) // step)
-    n_cols = max(1, w // step)
-    diffs = np.empty(n_rows * n_cols, dtype=np.float32)
-    for p in range(n_rows):
-        i = min(a + step // 2 + p * step, b - 1)
-        for q in range(n_cols):
-            j = min(step // 2 + q * step, w - 1)
-            left = _photon_at(frame, offset, gain, scale, i, _clip(j - _ROUGH_GAP, w))
-            right = _photon_at(frame, offset, gain, scale, i, _clip(j + _ROUGH_GAP, w))
-            centre = _photon_at(frame, offset, gain, scale, i, j)
-            diffs[p * n_cols + q] = centre - 0.5 * (left + right)
-    middle = np.median(diffs)
-    return mad_to_sigma * np.median(np.abs(diffs - middle)) / math.sqrt(1.5)
+@numba.njit(cache=True)
+def clipped_spreads(values, centre, spread, clip, clipped_variance, rounds):
+    """In place, each row ``t`` of ``values`` (t, n): ``rounds`` times, the mean and standard
+    deviation of the values within ``clip`` x ``spread[t]`` of ``centre[t]`` (the mean the
+    next centre, the deviation over sqrt(``clipped_variance``) the next spread)."""
+    for t in range(values.shape[0]):
+        c, s = centre[t], spread[t]
+        for _ in range(rounds):
+            total, square, count = 0.0, 0.0, 0
+            for v in values[t]:
+                d = v - c
+                if abs(d) < clip * s:
+                    total += d
+                    square += d * d
+                    count += 1
+            if count == 0:
+                break
+            mean = total / count
+            c += mean
+            s = math.sqrt(max(square / count - mean * mean, 0.0) / clipped_variance)
+        spread[t] = s if count > 0 else 0.0
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
@@ -369,23 +381,19 @@ def _filtered_row(frame, offset, gain, scale, row, r, taps, pad, out):
 
 @numba.njit(parallel=True, nogil=True, cache=True, fastmath=_FASTMATH)
 def detect_frames(
-    frames, offset, gain, scale, factor, weights, taps, wide, limits, floor_scale, mad_to_sigma,
-    gain_rows, gain_cols, radius, n_strips, stride, rows, cols, values, counts, floors, samples,
-    background,
+    frames, offset, gain, scale, factor, weights, taps, wide, limits, gain_rows, gain_cols, radius,
+    n_strips, rows, cols, values, counts, background,
 ):  # fmt: skip
-    """Band-pass, noise sample and local maxima of ``frames`` in one streaming pass per (frame,
-    strip of rows) task. ``taps`` are ``weights`` as a tuple (`_row_filter_taps`), ``wide`` the
+    """Band-pass and local maxima of ``frames`` in one streaming pass per (frame, strip of rows)
+    task. ``taps`` are ``weights`` as a tuple (`_row_filter_taps`), ``wide`` the
     wide Gaussian on block means of ``factor`` px (`latentz.detect.filter_plan`).
 
-    A maximum is a pixel above ``floors[k] * gain_rows[i] * gain_cols[j]`` (the noise grows at
-    the edges, `latentz.detect.edge_noise_gain`) that is the largest within ``radius`` px
-    (Chebyshev; ties all kept). The floor of task ``k`` (frame ``t``) is ``limits[t]``, or where
-    that is NaN ``floor_scale`` times the `_rough_noise` of its rows' pixels; task ``k`` writes
-    it to ``floors[k]``, its first ``rows.shape[1]`` maxima to row ``k`` of ``rows, cols,
-    values`` and their full count to ``counts[k]``; it also writes its rows' share of
-    ``samples[t]`` (the band-passed frame at every ``stride``-th pixel both ways) and of
-    ``background[t]`` (the wide background on the block grid, which `valleys_in_frames`
-    reads).
+    A maximum is a pixel of frame ``t`` above ``limits[t] * gain_rows[i] * gain_cols[j]`` (the
+    noise grows at the edges, `latentz.detect.edge_noise_gain`) that is the largest within
+    ``radius`` px (Chebyshev; ties all kept). Task ``k`` writes its first ``rows.shape[1]``
+    maxima to row ``k`` of ``rows, cols, values`` and their full count to ``counts[k]``; it also
+    writes its rows' share of ``background[t]`` (the wide background on the block grid, which
+    `valleys_in_frames` reads).
     """
     n, h, w = frames.shape
     hs, ws = background.shape[1], background.shape[2]
@@ -400,11 +408,6 @@ def detect_frames(
         b = (s + 1) * h // n_strips
         frame = frames[t]
         floor = limits[t]
-        if math.isnan(floor):
-            rough = _rough_noise(frame, offset, gain, scale, a, b, 4096, mad_to_sigma)
-            # a noise-free frame's noise counts as 1 photoelectron (`detect._usable_noise`)
-            floor = np.float32(floor_scale * (rough if rough > 0 else 1.0))
-        floors[task] = floor
         col0 = np.empty(w, dtype=np.int64)
         col1 = np.empty(w, dtype=np.int64)
         colf = np.empty(w, dtype=np.float32)
@@ -440,12 +443,9 @@ def detect_frames(
                             background[t, big] = block
                         _upsample_row(block, factor, col0, col1, colf, upsampled[big % 2])
                     last = r0
-                line = band[ready % band_n]
                 _band_row(ring, weights, ready, r, upsampled[r0 % 2],
-                          upsampled[min(r0 + 1, hs - 1) % 2], pos - r0, line)  # fmt: skip
-                if a <= ready < b and ready % stride == 0:
-                    for q in range(samples.shape[2]):
-                        samples[t, ready // stride, q] = line[q * stride]
+                          upsampled[min(r0 + 1, hs - 1) % 2], pos - r0,
+                          band[ready % band_n])  # fmt: skip
                 ready += 1
             row_floor = floor * gain_rows[i]
             found = _row_maxima(band, i, radius, h, row_floor, gain_cols, rows[task],
