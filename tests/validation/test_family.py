@@ -267,7 +267,7 @@ def test_dim_high_na_molecules_condemn_a_wrong_calibration_and_never_the_right_o
 ):
     """With the vectorial PSF of draw 17, dim point emitters fit wider than the calibration
     particles (points too here), not narrower: a fixed photon slope (dim spots narrower) read
-    their log width ratio as +0.14 against the 0.04 limit and condemned the right calibration.
+    their log width ratio as +0.14 against the 0.02 limit and condemned the right calibration.
     Carried to the calibration's brightness by its own dimmed refits, they fit it (+0.01 ±
     0.01); emitters at 1.2x the calibration's wavelength (a calibration made at another
     wavelength) still condemn it (+0.075 ± 0.011)."""
