@@ -112,8 +112,8 @@ def test_crowded_spots_do_not_raise_the_noise():
 
 def test_dim_spots_among_crowded_bright_ones_are_found():
     # 300-photon spots (sd 1.3 px, 15 x the band-passed noise at their peak) 8 px or more from
-    # 120 bright spots per frame: found 95 %; a threshold on the band-passed frame's spread,
-    # which those spots widen, found 5 % of them
+    # 120 bright spots per frame: found 98 %; a threshold on the band-passed frame's spread,
+    # which those spots widen, finds none of them
     crowded, _, points = _crowded_frames(120, seed=1)
     rng = np.random.default_rng(3)
     dim = []
