@@ -89,3 +89,23 @@ def test_pairs_are_made_within_frames_only():
 def test_missing_columns_are_named():
     with pytest.raises(ValueError, match=r"locs.*missing: \['z_nm'\]"):
         challenge_score(_table([(0, 0, 0, 0)]), _table([]).drop(columns="z_nm"))
+
+
+def test_a_fit_within_the_error_of_a_more_precise_one_is_one_measurement():
+    from latentz.validation.molecules import one_per_measurement
+
+    # frame 0: a fit, its copy 0.01 px off (within the better one's 0.05 px), a fit 0.5 px away
+    # (beyond it), a fit without a position; frame 1: the copy's place, another frame's fit
+    locs = pd.DataFrame(
+        {
+            "frame": [0, 0, 0, 0, 1],
+            "x": [10.0, 10.01, 10.5, np.nan, 10.01],
+            "y": [5.0, 5.0, 5.0, np.nan, 5.0],
+            "x_err": [0.04, 0.05, 0.04, np.nan, 0.04],
+            "y_err": [0.03, 0.03, 0.03, np.nan, 0.03],
+        }
+    )
+    np.testing.assert_array_equal(one_per_measurement(locs), [True, False, True, True, True])
+    # the more precise of two copies is the one kept, whichever comes first
+    swapped = locs.assign(x_err=[0.06, 0.04, 0.04, np.nan, 0.04])
+    np.testing.assert_array_equal(one_per_measurement(swapped), [False, True, True, True, True])

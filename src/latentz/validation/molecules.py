@@ -167,11 +167,13 @@ def one_per_measurement(locs: pd.DataFrame) -> np.ndarray:
     xy = locs[["x", "y"]].to_numpy(float)
     own = np.ones(len(locs), bool)
     for rows in locs.groupby("frame").indices.values():
+        rows = rows[np.isfinite(xy[rows]).all(axis=1)]  # a fit without a position is its own
         rows = rows[np.argsort(error[rows], kind="stable")]  # the most precise first, NaN last
-        finite = np.isfinite(xy[rows]).all(axis=1)
-        tree = cKDTree(np.where(finite[:, None], xy[rows], np.inf))
+        if rows.size < 2:
+            continue
+        tree = cKDTree(xy[rows])
         for k, row in enumerate(rows):
-            if own[row] and finite[k] and np.isfinite(error[row]):
+            if own[row] and np.isfinite(error[row]):
                 near = np.asarray(tree.query_ball_point(xy[row], error[row]), int)
                 own[rows[near[near > k]]] = False
     return own
