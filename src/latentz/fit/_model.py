@@ -28,6 +28,7 @@ __all__ = [
     "amplitude_of",
     "model_and_jacobian",
     "fisher_information",
+    "poisson_information",
     "crlb",
     "covariance",
     "moment_start",
@@ -204,9 +205,18 @@ def fisher_information(
     scale = np.stack(
         [np.ones(len(array))] * 4 + [array[:, 4], array[:, 5], 1.0 - array[:, 6] ** 2], axis=1
     )
-    jac_nat = jac / scale[:, None, :]
+    return poisson_information(jac / scale[:, None, :], mu, readnoise=readnoise)
+
+
+def poisson_information(
+    jacobian: np.ndarray, mu: np.ndarray, *, readnoise: float = 0.0
+) -> np.ndarray:
+    """Fisher information ``sum_pixels grad(mu) grad(mu)^T / (mu + readnoise^2)`` per ROI, of
+    any model: ``jacobian`` (n, pixels, k) d mu / d parameter, ``mu`` (n, pixels) the expected
+    photoelectrons, read noise as a Poisson shift (`fisher_information`'s noise model);
+    returns (n, k, k)."""
     weights = 1.0 / (mu + readnoise**2)
-    return np.matmul((jac_nat * weights[:, :, None]).transpose(0, 2, 1), jac_nat)
+    return np.matmul((jacobian * weights[:, :, None]).transpose(0, 2, 1), jacobian)
 
 
 def crlb(params: Any, *, shape: tuple[int, int] | int, readnoise: float = 0.0) -> np.ndarray:

@@ -25,7 +25,7 @@ from scipy.optimize import minimize
 
 from latentz.calibration import Calibration
 from latentz.calibration.brightness_shifts import shape_params_shift
-from latentz.fit import fisher_information, render_rois
+from latentz.fit import fisher_information, poisson_information, render_rois
 from latentz.simulate.molecules import Microscope, molecule_patches
 
 __all__ = ["curves_fit_z", "localization_bounds", "psf_bounds"]
@@ -160,6 +160,6 @@ def psf_bounds(
     # d mu / d (x, y, N, B, z), each pixel
     jac = np.stack([slopes[0], slopes[1], patches[:, 0], np.ones_like(slopes[0]), slopes[2]],
                    axis=2)  # fmt: skip
-    weights = 1.0 / (n * patches[:, 0] + background + microscope.camera.readnoise**2)
-    info = np.matmul((jac * weights[:, :, None]).transpose(0, 2, 1), jac)
+    info = poisson_information(jac, n * patches[:, 0] + background,
+                               readnoise=microscope.camera.readnoise)  # fmt: skip
     return np.sqrt(np.diagonal(np.linalg.inv(info), 0, 1, 2)[:, [0, 1, 4]])
