@@ -213,7 +213,7 @@ def localize_tracked(
             full = bool(lost.any())
         if not full:
             bands = _edge_bands(source, t, roi_size)
-            if band_noise_known is None:  # once per full detection: a median of every pixel
+            if band_noise_known is None:  # once per full detection: each band's pixel noise
                 band_noise_known = [band_noise(b, sigma=sigma) for b, _, _ in bands]
             entering = _entering(bands, band_noise_known, roi_size, band_threshold, sigma)
             entering = entering[_new(entering, xy, half)]
