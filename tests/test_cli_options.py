@@ -38,6 +38,32 @@ def test_non_positive_gain_from_options():
         camera_from_options(None, gain=0.0)
 
 
+def test_emccd_halves_the_datasheet_gain_and_readnoise(tmp_path):
+    """--emccd: a given gain and read noise (options or file) become Camera.emccd's
+    Poisson-equivalent values; what comes from the calibration (``base``) or from the stacks'
+    photon-transfer curve is Poisson-equivalent already and stays; the line says which."""
+    from latentz.camera import Camera
+    from latentz.camera.source import camera_for_stacks
+
+    cam = camera_from_options(None, offset=100.0, gain=0.1, readnoise=0.5, emccd=True)
+    assert cam == Camera.emccd(offset=100.0, gain=0.1, readnoise=0.5)
+    assert (cam.gain, cam.readnoise) == (0.05, 0.25)
+    path = tmp_path / "cam.json"
+    path.write_text(json.dumps({"gain": 0.2}))
+    assert camera_from_options(path, emccd=True).gain == 0.1
+    base = Camera(offset=100.0, gain=0.3, readnoise=0.4)
+    assert camera_from_options(None, offset=90.0, emccd=True, base=base) == Camera(
+        offset=90.0, gain=0.3, readnoise=0.4
+    )
+    rng = np.random.default_rng(0)
+    stacks = [rng.poisson(rng.uniform(5, 500, (1, 16, 16)) * np.ones((6, 1, 1))) + 100.0]
+    given = {"offset": 100.0, "gain": 0.1, "readnoise": None, "pixel_size_nm": 100.0}
+    camera, said = camera_for_stacks(stacks, None, given, emccd=True)
+    assert camera.gain == 0.05 and camera.readnoise == Camera().readnoise
+    assert "gain 0.05 e-/ADU (given, halved: EMCCD)" in said
+    assert "readnoise 1.5 e- (default)" in said
+
+
 def test_z_from_start_and_step():
     np.testing.assert_allclose(z_positions(3, z_start_nm=-100, z_step_nm=50), [-100, -50, 0])
 

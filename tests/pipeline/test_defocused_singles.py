@@ -56,7 +56,7 @@ def test_far_from_focus_a_single_emitter_is_one_row():
     centres = at.loc[[3, 4, 5], ["x_nm", "y_nm"]].to_numpy() / 100 - 0.5  # pixel centres
     psf = BeadPSF.from_stack(photons, z, centres)
     frames, truth = _frames(psf, seed=1)
-    camera = lz.Camera(offset=100.0, gain=0.1, readnoise=0.5, pixel_size_nm=100.0)
+    camera = lz.Camera.emccd(offset=100.0, gain=0.1, readnoise=0.5, pixel_size_nm=100.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         table = lz.localize(frames, calibration=cal, camera=camera)

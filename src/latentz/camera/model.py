@@ -1,5 +1,10 @@
 """Camera model: offset, gain, read noise, pixel size and flatfield.
 
+latentz's likelihood takes each pixel's count as Poisson plus Gaussian read noise, so a Camera
+converts ADU to counts with that noise. On a CCD or sCMOS camera they are photoelectrons. An
+EMCCD's gain register doubles the variance of each photoelectron (excess noise factor √2 at high
+EM gain), so its counts are photoelectrons / 2, Poisson-equivalent ones: :meth:`Camera.emccd`.
+
 The flatfield follows the paper's Results, "A flatfield correction".
 """
 
@@ -12,7 +17,12 @@ import numpy as np
 
 from latentz._shared.validate import check_array, check_finite, check_positive
 
-__all__ = ["Camera"]
+__all__ = ["Camera", "EMCCD_EXCESS_VARIANCE"]
+
+#: Variance of an EMCCD's output per photoelectron, in units of its mean squared: 2 at EM gains
+#: of tens and more (excess noise factor √2; Robbins & Hadwen, IEEE Trans. Electron Devices
+#: 2003), where the gain register's multiplication is as noisy as the shot noise itself.
+EMCCD_EXCESS_VARIANCE = 2.0
 
 
 @dataclass(frozen=True)
@@ -61,6 +71,41 @@ class Camera:
                 raise ValueError("Expected `flatfield` to be finite and > 0 everywhere.")
             flat.setflags(write=False)
             object.__setattr__(self, "flatfield", flat)
+
+    @classmethod
+    def emccd(
+        cls,
+        *,
+        offset: float,
+        gain: float,
+        readnoise: float = 0.0,
+        pixel_size_nm: float = 130.0,
+        flatfield: np.ndarray | None = None,
+    ) -> Camera:
+        """The camera of an EMCCD with its EM gain on, in Poisson-equivalent counts.
+
+        ``gain`` is photoelectrons per ADU (the camera's electrons per ADU over its EM gain) and
+        ``readnoise`` the read noise referred to the input (output electrons over the EM gain),
+        both as the datasheet gives them. The gain register's excess noise doubles each pixel's
+        variance (:data:`EMCCD_EXCESS_VARIANCE`), which a Poisson likelihood of photoelectrons
+        would ignore, and every reported σ would be √2 too small. So both are divided by it:
+        the counts are photoelectrons / 2, whose variance is their mean, and photon counts that
+        latentz reports (``photons``, ``amplitude``, ``background``) are in those units, half
+        the photoelectrons. A gain that latentz estimates from a photon-transfer curve is
+        Poisson-equivalent already.
+
+        >>> cam = Camera.emccd(offset=100.0, gain=0.1, readnoise=0.5)
+        >>> cam.gain, cam.readnoise
+        (0.05, 0.25)
+        """
+        return cls(
+            offset=offset,
+            gain=check_positive("gain", gain) / EMCCD_EXCESS_VARIANCE,
+            readnoise=check_positive("readnoise", readnoise, allow_zero=True)
+            / EMCCD_EXCESS_VARIANCE,
+            pixel_size_nm=pixel_size_nm,
+            flatfield=flatfield,
+        )
 
     def to_photons(self, adu: Any, *, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
         """Convert ADU to photoelectrons: ``(adu - offset) * gain / flatfield``.

@@ -13,6 +13,10 @@ image file's metadata, or an estimate from the images.
   grows as ``(mean − offset) / gain``: the slope is ``1 / gain``. An EMCCD's excess noise
   doubles the variance, so there it estimates half the gain (the effective one).
 - ``readnoise``: given, else the default.
+
+On an EMCCD (``emccd``) a given gain and read noise are the datasheet's, halved to the
+Poisson-equivalent counts of :meth:`~latentz.camera.Camera.emccd`; the photon-transfer estimate
+is Poisson-equivalent already.
 """
 
 from __future__ import annotations
@@ -24,8 +28,15 @@ from typing import Any
 import numpy as np
 
 from latentz.camera import Camera
+from latentz.camera.model import EMCCD_EXCESS_VARIANCE
 
-__all__ = ["pixel_size_from_metadata", "estimate_offset", "estimate_gain", "camera_for_stacks"]
+__all__ = [
+    "pixel_size_from_metadata",
+    "estimate_offset",
+    "estimate_gain",
+    "camera_for_stacks",
+    "poisson_equivalent",
+]
 
 _UNIT_NM = {"nm": 1.0, "nanometer": 1.0, "µm": 1e3, "um": 1e3, "micron": 1e3, "\\u00b5m": 1e3}
 _UNIT_NM["mm"] = 1e6
@@ -91,22 +102,40 @@ def estimate_gain(stacks: list[Any], *, n_bins: int = 40) -> float:
     return float(1.0 / slope) if slope > 0 else np.nan
 
 
+def poisson_equivalent(given: dict, emccd: bool) -> dict:
+    """``given`` camera values with, on an EMCCD (``emccd``), its gain and read noise divided
+    by :data:`~latentz.camera.model.EMCCD_EXCESS_VARIANCE` where given (not None), as
+    :meth:`Camera.emccd` does."""
+    if not emccd:
+        return dict(given)
+    return {
+        name: value / EMCCD_EXCESS_VARIANCE
+        if name in ("gain", "readnoise") and value is not None
+        else value
+        for name, value in given.items()
+    }
+
+
 def camera_for_stacks(
     stacks: list[Any],
     path: str | os.PathLike | None,
     given: dict[str, Any],
     *,
     flatfield: np.ndarray | None = None,
+    emccd: bool = False,
 ) -> tuple[Camera, str]:
     """The camera for calibration stacks, and one line saying where each value came from.
 
-    ``given`` holds the values from the command line or a camera file (None where absent).
+    ``given`` holds the values from the command line or a camera file (None where absent);
+    ``emccd``: they are an EMCCD's, whose given gain and read noise are halved.
     """
     default = Camera()
     values, sources = {}, {}
+    halved = poisson_equivalent(given, emccd)
     for name in ("offset", "gain", "readnoise", "pixel_size_nm"):
         if given.get(name) is not None:
-            values[name], sources[name] = float(given[name]), "given"
+            values[name] = float(halved[name])
+            sources[name] = "given, halved: EMCCD" if halved[name] != given[name] else "given"
     if "pixel_size_nm" not in values:
         found = pixel_size_from_metadata(path) if path is not None else None
         if found is not None:

@@ -141,6 +141,15 @@ def _camera_options(func):
             f"ImageJ, MicroManager), else {Camera().pixel_size_nm:g}; localize: the "
             "calibration's]",
         ),
+        click.option(
+            "--emccd",
+            is_flag=True,
+            help="An EMCCD with EM gain on: its excess noise doubles each pixel's variance, so "
+            "the --gain (photoelectrons per ADU: electrons per ADU over the EM gain) and "
+            "--readnoise (over the EM gain) given here or in --camera are halved to "
+            "Poisson-equivalent counts, in which photons are then reported. A gain estimated "
+            "from the photon-transfer curve needs no halving.",
+        ),
     ]
     for option in reversed(options):
         func = option(func)
@@ -229,6 +238,7 @@ def calibrate(
     gain,
     readnoise,
     pixel_size_nm,
+    emccd,
     shape,
     roi_size,
     field_model,
@@ -275,7 +285,7 @@ def calibrate(
     z = z_positions(loaded[0].shape[0], z_start_nm=z_start_nm, z_step_nm=z_step_nm, z_file=z_file)
     offsets = None if stage_offsets is None else stage_offsets_px(stage_offsets, len(loaded))
     arrays = [s.compute() for s in loaded]
-    camera, said = camera_for_stacks(arrays, stacks[0], given, flatfield=flatfield)
+    camera, said = camera_for_stacks(arrays, stacks[0], given, flatfield=flatfield, emccd=emccd)
     cal = run_calibration(
         arrays,
         z,
@@ -369,6 +379,7 @@ def localize(
     gain,
     readnoise,
     pixel_size_nm,
+    emccd,
     device,
     quiet,
 ) -> None:
@@ -397,6 +408,7 @@ def localize(
         "gain": gain,
         "readnoise": readnoise,
         "pixel_size_nm": pixel_size_nm,
+        "emccd": emccd,
     }
 
     table = localize_movies(

@@ -13,6 +13,7 @@ import numpy as np
 
 from latentz._shared.validate import check_finite, check_int, check_positive
 from latentz.camera import Camera
+from latentz.camera.source import poisson_equivalent
 
 __all__ = ["camera_from_options", "read_camera_file", "stage_offsets_px", "z_positions"]
 
@@ -24,25 +25,35 @@ def camera_from_options(
     gain: float | None = None,
     readnoise: float | None = None,
     pixel_size_nm: float | None = None,
+    emccd: bool = False,
     base: Camera | None = None,
 ) -> Camera | None:
     """A Camera from a JSON file and/or explicit values (explicit values win); None if neither.
 
     The JSON file holds ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm`` and optionally
-    ``flatfield``: a path to a TIFF image, relative to the JSON file. With ``base``, what is not
-    given keeps ``base``'s value (and the result is ``base`` if nothing is given).
+    ``flatfield``: a path to a TIFF image, relative to the JSON file. With ``emccd``, the gain
+    and read noise given (file or values) are an EMCCD's datasheet values, made
+    Poisson-equivalent (:func:`latentz.camera.source.poisson_equivalent`). With ``base``, what
+    is not given keeps ``base``'s value (and the result is ``base`` if nothing is given).
     """
     values: dict = {}
     flatfield = None
     if base is not None:
         values = {k: v for k, v in base.as_dict().items() if k != "flatfield"}
         flatfield = base.flatfield
+    given: dict = {}
     if camera_file is not None:
         from_file, from_file_flat = read_camera_file(camera_file)
-        values.update(from_file)
+        given.update(from_file)
         flatfield = from_file_flat if from_file_flat is not None else flatfield
-    given = {"offset": offset, "gain": gain, "readnoise": readnoise, "pixel_size_nm": pixel_size_nm}
-    values.update({k: v for k, v in given.items() if v is not None})
+    options = {
+        "offset": offset,
+        "gain": gain,
+        "readnoise": readnoise,
+        "pixel_size_nm": pixel_size_nm,
+    }
+    given.update({k: v for k, v in options.items() if v is not None})
+    values.update(poisson_equivalent(given, emccd))
     if not values and flatfield is None:
         return None
     return Camera(**values, flatfield=flatfield)

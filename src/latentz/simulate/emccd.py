@@ -4,8 +4,9 @@
 ``n`` and scale ``em_gain`` (mean ``n G``, variance ``n G²``): with the shot noise, the variance is
 ``2 n G²``, an excess noise factor of √2. Read noise (electrons at the output, so it shrinks by
 ``G`` referred to the input), the conversion to ADU, an offset, rounding and 16-bit clipping
-follow. A latentz :class:`~latentz.camera.Camera` of the same frames has ``gain = e_per_adu /
-em_gain`` photoelectrons per ADU and ``readnoise = readnoise_e / em_gain``.
+follow. The latentz camera of the same frames is ``Camera.emccd(offset=offset_adu, gain=e_per_adu
+/ em_gain, readnoise=readnoise_e / em_gain)``: photoelectrons per ADU and input-referred read
+noise, halved to Poisson-equivalent counts (:meth:`latentz.camera.Camera.emccd`).
 """
 
 from __future__ import annotations
