@@ -147,3 +147,31 @@ def test_models_stop_at_a_gap_of_unmeasured_planes():
     error = np.where(inside, local.dx(local.z_nm) - expected, 0.0)
     # noise-free: the cubic truth is reproduced to numerical precision where the model holds
     np.testing.assert_allclose(error, 0.0, atol=1e-6)
+
+
+def test_focus_under_strong_astigmatism_lies_between_the_line_foci():
+    """Astigmatism strong enough that A(z) peaks at both line foci (±450 nm about the centre,
+    300 nm depth of focus), the + side a little brighter by a slope k that varies between
+    particles, from none (equal peaks) to 10 %/µm. The window about the maximum spans both
+    peaks, and its polynomial's peak falls at either focus or at its edge. Best focus must be
+    interior for every particle and lie midway between the two peaks of its own A(z) (found
+    here on a fine grid of the analytic A), where a single peak lies under weaker astigmatism."""
+    from latentz.calibration.local import best_focus
+
+    n, c, d = 12, 450.0, 300.0
+    rng = np.random.default_rng(3)
+    centre, k = rng.uniform(-100.0, 100.0, n), np.linspace(0.0, 0.1, n)
+    z = np.broadcast_to(np.arange(-1500.0, 1500.1, 20.0), (n, 151)).copy()
+
+    def amplitude(u: np.ndarray, slope: np.ndarray) -> np.ndarray:
+        wx, wy = np.sqrt(1 + ((u - c) / d) ** 2), np.sqrt(1 + ((u + c) / d) ** 2)
+        return 1e4 / (wx * wy) * (1 + slope * u / 1000.0)
+
+    traces = amplitude(z - centre[:, None], k[:, None])
+    traces *= 1 + 0.003 * rng.standard_normal(traces.shape)  # a bright bead's amplitude noise
+    u = np.linspace(0.0, 1200.0, 120001)
+    plus = np.array([u[np.argmax(amplitude(u, s))] for s in k])
+    minus = np.array([-u[np.argmax(amplitude(-u, s))] for s in k])
+    _, z_f, interior = best_focus(z, traces)
+    assert interior.all()
+    np.testing.assert_allclose(z_f - centre, (plus + minus) / 2, atol=15.0)

@@ -38,6 +38,12 @@ __all__ = [
 ]
 
 
+#: A trace's A(z) has two peaks where its running mean dips this much (relative to the lower of
+#: the highest values on either side) within the focus window; amplitude noise of bright
+#: particles is under 1 %.
+DIP_FRACTION = 0.03
+
+
 @dataclass(frozen=True)
 class LocalOptions:
     """Orders and windows of the local models (the paper's orders are the defaults).
@@ -295,17 +301,106 @@ def best_focus(
     contiguous planes where A ≥ ``focus_fraction`` × max, then again on a window of the same width
     centred on that first peak: on a discrete plane grid the first window is asymmetric about the
     peak, which biases it. This is the definition of best focus that every z of latentz refers to.
+
+    Under astigmatism strong enough that A(z) peaks at both line foci, with a dip between
+    (:func:`_dipped`), the window about the maximum spans both, and the polynomial's peak falls
+    at its edge or at either focus, as noise and the field favour. There z_f is the midpoint of
+    the two foci, each the peak of A fitted about its own maximum down to the dip
+    (:func:`_peak_planes`, :func:`_peak_window_near`): where weaker astigmatism leaves one peak,
+    it lies between the foci too.
     """
-    window = _focus_window(z_nm, amplitude, options.focus_fraction, options.amplitude_order + 3)
-    model = PolyModel.from_estimate(z_nm, amplitude, order=options.amplitude_order, mask=window)
+    order, min_planes = options.amplitude_order, options.amplitude_order + 3
+    window = _focus_window(z_nm, amplitude, options.focus_fraction, min_planes)
+    model = PolyModel.from_estimate(z_nm, amplitude, order=order, mask=window)
     z_f, interior = peak(model)
     step = np.median(np.diff(z_nm, axis=1))
     half = np.sum(window, axis=1, keepdims=True) * step / 2
     centred = (np.abs(z_nm - z_f[:, None]) <= half) & np.isfinite(amplitude) & interior[:, None]
     centred |= window & ~interior[:, None]
-    model = PolyModel.from_estimate(z_nm, amplitude, order=options.amplitude_order, mask=centred)
+    model = PolyModel.from_estimate(z_nm, amplitude, order=order, mask=centred)
     z_f, interior = peak(model)
+    twin = _dipped(amplitude, window)
+    if not twin.any():
+        return model, z_f, interior
+    rows = np.flatnonzero(twin)
+    sides = [_peak_window_near(z_nm[rows], amplitude[rows], target, options.focus_fraction,
+                               min_planes) for target in _peak_planes(z_nm[rows],
+                                                                      amplitude[rows],
+                                                                      window[rows])]  # fmt: skip
+    foci = [peak(PolyModel.from_estimate(z_nm[rows], amplitude[rows], order=order, mask=m))
+            for m in sides]  # fmt: skip
+    z_f, interior = z_f.copy(), interior.copy()
+    z_f[rows] = (foci[0][0] + foci[1][0]) / 2
+    interior[rows] = foci[0][1] & foci[1][1] & sides[0].any(axis=1) & sides[1].any(axis=1)
     return model, z_f, interior
+
+
+def _peak_planes(z: np.ndarray, amp: np.ndarray, window: np.ndarray) -> list[np.ndarray]:
+    """z (nm, (n,) each) of the highest A (n, n_z) inside ``window`` on either side of its
+    deepest dip (:func:`_dipped`): the two line foci."""
+    depth = _dip_depth(amp, window)
+    dip = np.argmax(depth, axis=1)
+    idx = np.arange(amp.shape[1])
+    filled = np.where(window & np.isfinite(amp), amp, -np.inf)
+    left = np.argmax(np.where(idx < dip[:, None], filled, -np.inf), axis=1)
+    right = np.argmax(np.where(idx > dip[:, None], filled, -np.inf), axis=1)
+    rows = np.arange(len(amp))
+    return [z[rows, left], z[rows, right]]
+
+
+def _dip_depth(amp: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """(n, n_z) how far each trace's three-plane running mean of A (n, n_z) lies below the
+    lower of its highest values on either side, within ``window`` (relative; −inf outside)."""
+    inside = window & np.isfinite(amp)
+    value = np.pad(np.where(inside, amp, 0.0), ((0, 0), (1, 1)))
+    count = np.pad(inside.astype(float), ((0, 0), (1, 1)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smooth = (value[:, :-2] + value[:, 1:-1] + value[:, 2:]) / (
+            count[:, :-2] + count[:, 1:-1] + count[:, 2:]
+        )
+        smooth = np.where(inside, smooth, -np.inf)
+        left = np.fmax.accumulate(smooth, axis=1)
+        right = np.fmax.accumulate(smooth[:, ::-1], axis=1)[:, ::-1]
+        lower = np.minimum(left, right)
+        return np.where(inside, (lower - smooth) / lower, -np.inf)
+
+
+def _dipped(amp: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """(n,) whether each trace's A (n, n_z) dips within its focus ``window`` (n, n_z) by more
+    than :data:`DIP_FRACTION` (:func:`_dip_depth`): two peaks, the line foci of strong
+    astigmatism."""
+    return _dip_depth(amp, window).max(axis=1) > DIP_FRACTION
+
+
+def _peak_window_near(
+    z: np.ndarray, amp: np.ndarray, target: np.ndarray, fraction: float, min_planes: int
+) -> np.ndarray:
+    """(n, n_z) mask of the planes about the local maximum of each trace's A (n, n_z) nearest
+    its ``target`` (nm, (n,); ``z`` (n, n_z) nm): from that maximum down each side while A's
+    three-plane running mean falls and A stays at least ``fraction`` of the maximum. A row is
+    empty where that holds fewer than ``min_planes`` planes (no peak of its own there)."""
+    n, n_z = amp.shape
+    filled = np.where(np.isfinite(amp), amp, -np.inf)
+    padded = np.pad(filled, ((0, 0), (1, 1)), mode="edge")
+    smooth = (padded[:, :-2] + padded[:, 1:-1] + padded[:, 2:]) / 3
+    out = np.zeros((n, n_z), dtype=bool)
+    for row in range(n):
+        i = int(np.argmin(np.abs(z[row] - target[row])))
+        while True:  # climb to the local maximum of the running mean
+            up = [j for j in (i - 1, i + 1) if 0 <= j < n_z and smooth[row, j] > smooth[row, i]]
+            if not up:
+                break
+            i = max(up, key=lambda j: smooth[row, j])
+        floor = fraction * filled[row, i]
+        lo = hi = i
+        while lo > 0 and smooth[row, lo - 1] <= smooth[row, lo] and filled[row, lo - 1] >= floor:
+            lo -= 1
+        while (hi < n_z - 1 and smooth[row, hi + 1] <= smooth[row, hi]
+               and filled[row, hi + 1] >= floor):  # fmt: skip
+            hi += 1
+        if hi - lo + 1 >= min_planes:
+            out[row, lo : hi + 1] = np.isfinite(amp[row, lo : hi + 1])
+    return out
 
 
 def fit_local(
