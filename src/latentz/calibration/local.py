@@ -327,11 +327,14 @@ def best_focus(
                                min_planes) for target in _peak_planes(z_nm[rows],
                                                                       amplitude[rows],
                                                                       window[rows])]  # fmt: skip
-    foci = [peak(PolyModel.from_estimate(z_nm[rows], amplitude[rows], order=order, mask=m))
-            for m in sides]  # fmt: skip
+    both = sides[0].any(axis=1) & sides[1].any(axis=1)  # else no focus of its own: not in focus
     z_f, interior = z_f.copy(), interior.copy()
+    z_f[rows[~both]], interior[rows[~both]] = np.nan, False
+    rows = rows[both]
+    foci = [peak(PolyModel.from_estimate(z_nm[rows], amplitude[rows], order=order, mask=m[both]))
+            for m in sides]  # fmt: skip
     z_f[rows] = (foci[0][0] + foci[1][0]) / 2
-    interior[rows] = foci[0][1] & foci[1][1] & sides[0].any(axis=1) & sides[1].any(axis=1)
+    interior[rows] = foci[0][1] & foci[1][1]
     return model, z_f, interior
 
 
