@@ -2,7 +2,8 @@
 
 For every calibration particle, as arrays over all particles at once:
 
-- z_f, the peak of a polynomial (order 5) fitted to A(z) around its maximum;
+- z_f, the peak of a polynomial (order 5) fitted to A(z) around its maximum (the midpoint of
+  the two line foci where A peaks at both);
 - Δx'(z) = x'(z) − x'(z_f) and Δy'(z), polynomials of order 16 (eqs. 2–3);
 - for each shape parameter s: the forward model s(z) (order 16), the range of z around focus over
   which it is monotonic, and the inverse z(s) (order 16) fitted over that range;
