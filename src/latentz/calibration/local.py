@@ -303,12 +303,12 @@ def best_focus(
     centred on that first peak: on a discrete plane grid the first window is asymmetric about the
     peak, which biases it. This is the definition of best focus that every z of latentz refers to.
 
-    Under astigmatism strong enough that A(z) peaks at both line foci, with a dip between
-    (:func:`_dipped`), the window about the maximum spans both, and the polynomial's peak falls
-    at its edge or at either focus, as noise and the field favour. There z_f is the midpoint of
-    the two foci, each the peak of A fitted about its own maximum down to the dip
-    (:func:`_peak_planes`, :func:`_peak_window_near`): where weaker astigmatism leaves one peak,
-    it lies between the foci too.
+    Under astigmatism strong enough that A(z) peaks at both line foci, with a dip between of
+    more than :data:`DIP_FRACTION` (:func:`_dip_depth`), the window about the maximum spans
+    both, and the polynomial's peak falls at its edge or at either focus, as noise and the field
+    favour. There z_f is the midpoint of the two foci, each the peak of A fitted about its own
+    maximum down to the dip (:func:`_peak_planes`, :func:`_peak_window_near`): where weaker
+    astigmatism leaves one peak, it lies between the foci too.
     """
     order, min_planes = options.amplitude_order, options.amplitude_order + 3
     window = _focus_window(z_nm, amplitude, options.focus_fraction, min_planes)
@@ -320,14 +320,15 @@ def best_focus(
     centred |= window & ~interior[:, None]
     model = PolyModel.from_estimate(z_nm, amplitude, order=order, mask=centred)
     z_f, interior = peak(model)
-    twin = _dipped(amplitude, window)
+    depth = _dip_depth(amplitude, window)
+    twin = depth.max(axis=1) > DIP_FRACTION
     if not twin.any():
         return model, z_f, interior
     rows = np.flatnonzero(twin)
     sides = [_peak_window_near(z_nm[rows], amplitude[rows], target, options.focus_fraction,
-                               min_planes) for target in _peak_planes(z_nm[rows],
-                                                                      amplitude[rows],
-                                                                      window[rows])]  # fmt: skip
+                               min_planes)
+             for target in _peak_planes(z_nm[rows], amplitude[rows], window[rows],
+                                        depth[rows])]  # fmt: skip
     both = sides[0].any(axis=1) & sides[1].any(axis=1)  # else no focus of its own: not in focus
     z_f, interior = z_f.copy(), interior.copy()
     z_f[rows[~both]], interior[rows[~both]] = np.nan, False
@@ -339,10 +340,11 @@ def best_focus(
     return model, z_f, interior
 
 
-def _peak_planes(z: np.ndarray, amp: np.ndarray, window: np.ndarray) -> list[np.ndarray]:
+def _peak_planes(
+    z: np.ndarray, amp: np.ndarray, window: np.ndarray, depth: np.ndarray
+) -> list[np.ndarray]:
     """z (nm, (n,) each) of the highest A (n, n_z) inside ``window`` on either side of its
-    deepest dip (:func:`_dipped`): the two line foci."""
-    depth = _dip_depth(amp, window)
+    deepest dip (``depth``, :func:`_dip_depth`): the two line foci."""
     dip = np.argmax(depth, axis=1)
     idx = np.arange(amp.shape[1])
     filled = np.where(window & np.isfinite(amp), amp, -np.inf)
@@ -367,13 +369,6 @@ def _dip_depth(amp: np.ndarray, window: np.ndarray) -> np.ndarray:
         right = np.fmax.accumulate(smooth[:, ::-1], axis=1)[:, ::-1]
         lower = np.minimum(left, right)
         return np.where(inside, (lower - smooth) / lower, -np.inf)
-
-
-def _dipped(amp: np.ndarray, window: np.ndarray) -> np.ndarray:
-    """(n,) whether each trace's A (n, n_z) dips within its focus ``window`` (n, n_z) by more
-    than :data:`DIP_FRACTION` (:func:`_dip_depth`): two peaks, the line foci of strong
-    astigmatism."""
-    return _dip_depth(amp, window).max(axis=1) > DIP_FRACTION
 
 
 def _peak_window_near(
