@@ -17,12 +17,25 @@ import numpy as np
 
 from latentz._shared.validate import check_array, check_finite, check_positive
 
-__all__ = ["Camera", "EMCCD_EXCESS_VARIANCE"]
+__all__ = ["Camera", "EMCCD_EXCESS_VARIANCE", "poisson_equivalent"]
 
 #: Variance of an EMCCD's output per photoelectron, in units of its mean squared: 2 at EM gains
 #: of tens and more (excess noise factor √2; Robbins & Hadwen, IEEE Trans. Electron Devices
 #: 2003), where the gain register's multiplication is as noisy as the shot noise itself.
 EMCCD_EXCESS_VARIANCE = 2.0
+#: The camera values an EMCCD's excess noise rescales.
+_HALVED = ("gain", "readnoise")
+
+
+def poisson_equivalent(given: dict, emccd: bool) -> dict:
+    """``given`` camera values with, on an EMCCD (``emccd``), its gain and read noise divided
+    by :data:`EMCCD_EXCESS_VARIANCE` where given (not None): Poisson-equivalent counts."""
+    return {
+        name: value / EMCCD_EXCESS_VARIANCE
+        if emccd and name in _HALVED and value is not None
+        else value
+        for name, value in given.items()
+    }
 
 
 @dataclass(frozen=True)
@@ -98,14 +111,12 @@ class Camera:
         >>> cam.gain, cam.readnoise
         (0.05, 0.25)
         """
-        return cls(
-            offset=offset,
-            gain=check_positive("gain", gain) / EMCCD_EXCESS_VARIANCE,
-            readnoise=check_positive("readnoise", readnoise, allow_zero=True)
-            / EMCCD_EXCESS_VARIANCE,
-            pixel_size_nm=pixel_size_nm,
-            flatfield=flatfield,
-        )
+        datasheet = {
+            "gain": check_positive("gain", gain),
+            "readnoise": check_positive("readnoise", readnoise, allow_zero=True),
+        }
+        return cls(offset=offset, pixel_size_nm=pixel_size_nm, flatfield=flatfield,
+                   **poisson_equivalent(datasheet, emccd=True))  # fmt: skip
 
     def to_photons(self, adu: Any, *, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
         """Convert ADU to photoelectrons: ``(adu - offset) * gain / flatfield``.

@@ -28,14 +28,13 @@ from typing import Any
 import numpy as np
 
 from latentz.camera import Camera
-from latentz.camera.model import EMCCD_EXCESS_VARIANCE
+from latentz.camera.model import poisson_equivalent
 
 __all__ = [
     "pixel_size_from_metadata",
     "estimate_offset",
     "estimate_gain",
     "camera_for_stacks",
-    "poisson_equivalent",
 ]
 
 _UNIT_NM = {"nm": 1.0, "nanometer": 1.0, "µm": 1e3, "um": 1e3, "micron": 1e3, "\\u00b5m": 1e3}
@@ -100,20 +99,6 @@ def estimate_gain(stacks: list[Any], *, n_bins: int = 40) -> float:
     v = np.bincount(which, variance, n_bins)[full] / counts[full]
     slope = np.polyfit(m, v, 1)[0]
     return float(1.0 / slope) if slope > 0 else np.nan
-
-
-def poisson_equivalent(given: dict, emccd: bool) -> dict:
-    """``given`` camera values with, on an EMCCD (``emccd``), its gain and read noise divided
-    by :data:`~latentz.camera.model.EMCCD_EXCESS_VARIANCE` where given (not None), as
-    :meth:`Camera.emccd` does."""
-    if not emccd:
-        return dict(given)
-    return {
-        name: value / EMCCD_EXCESS_VARIANCE
-        if name in ("gain", "readnoise") and value is not None
-        else value
-        for name, value in given.items()
-    }
 
 
 def camera_for_stacks(

@@ -13,7 +13,7 @@ import numpy as np
 
 from latentz._shared.validate import check_finite, check_int, check_positive
 from latentz.camera import Camera
-from latentz.camera.source import poisson_equivalent
+from latentz.camera.model import poisson_equivalent
 
 __all__ = ["camera_from_options", "read_camera_file", "stage_offsets_px", "z_positions"]
 
@@ -33,7 +33,7 @@ def camera_from_options(
     The JSON file holds ``offset``, ``gain``, ``readnoise``, ``pixel_size_nm`` and optionally
     ``flatfield``: a path to a TIFF image, relative to the JSON file. With ``emccd``, the gain
     and read noise given (file or values) are an EMCCD's datasheet values, made
-    Poisson-equivalent (:func:`latentz.camera.source.poisson_equivalent`). With ``base``, what
+    Poisson-equivalent (:func:`latentz.camera.model.poisson_equivalent`). With ``base``, what
     is not given keeps ``base``'s value (and the result is ``base`` if nothing is given).
     """
     values: dict = {}
