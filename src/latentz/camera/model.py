@@ -59,7 +59,7 @@ class Camera:
     Examples
     --------
     >>> cam = Camera(offset=100.0, gain=0.5)
-    >>> float(cam.to_photons(np.array([300.0]))[0])
+    >>> float(cam.to_photons(np.array([[300.0]]))[0, 0])
     100.0
     """
 
