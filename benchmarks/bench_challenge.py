@@ -41,7 +41,6 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 import argparse
-import dataclasses
 import shutil
 import sys
 import tempfile
@@ -115,15 +114,15 @@ def make_frames(psf: BeadPSF, n_frames: int, seed: int) -> tuple[np.ndarray, pd.
     return frames, truth
 
 
+#: The frames' camera as its datasheet gives it: photoelectrons per ADU, input-referred read noise.
+DATASHEET = dict(offset=OFFSET_ADU, gain=E_PER_ADU / EM_GAIN, readnoise=READNOISE_E / EM_GAIN,
+                 pixel_size_nm=smlm.PIXEL_NM)  # fmt: skip
+
+
 def frames_camera() -> lz.Camera:
-    """latentz's camera for the EMCCD frames, from the camera's own numbers: photoelectrons per
-    ADU and input-referred read noise, made Poisson-equivalent by ``Camera.emccd``."""
-    return lz.Camera.emccd(
-        offset=OFFSET_ADU,
-        gain=E_PER_ADU / EM_GAIN,
-        readnoise=READNOISE_E / EM_GAIN,
-        pixel_size_nm=smlm.PIXEL_NM,
-    )
+    """latentz's camera for the EMCCD frames: the datasheet's numbers made Poisson-equivalent by
+    ``Camera.emccd``."""
+    return lz.Camera.emccd(**DATASHEET)
 
 
 def picasso_frames_camera() -> dict:
@@ -415,8 +414,7 @@ def main() -> None:
         print(name, {k: round(v, 1) for k, v in results[name][0].items()})
     kept = good_keeps(truth, table)
     kept["coverage"] = coverage(truth, table, lz_origin)
-    plain = dataclasses.replace(frames_camera(), gain=E_PER_ADU / EM_GAIN,
-                                readnoise=READNOISE_E / EM_GAIN)  # fmt: skip
+    plain = lz.Camera(**DATASHEET)  # the same numbers taken as Poisson counts
     kept["coverage_plain"] = coverage(truth, latentz_table(frames, cal, plain), lz_origin)
     kept["z_test"] = bright_isolated_z(truth, table)
     kept["z_cal"] = bright_isolated_z(tune_truth, latentz_table(tune_frames, cal, frames_camera()))
