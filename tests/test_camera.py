@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from pixel_gaussian import pixel_profile
 
 from latentz.camera import Camera
 
@@ -60,16 +61,10 @@ def _gaussian_spots(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expected photoelectrons (n, size, size) of round Gaussian spots integrated over each
     pixel, and their true centres (n, 2) as (x, y) px, uniform within ±0.5 px of the middle."""
-    from scipy.special import erf
-
     centres = (size - 1) / 2 + rng.uniform(-0.5, 0.5, (n, 2))
-    edges = np.arange(size + 1) - 0.5
-    scale = sigma_px * np.sqrt(2.0)
-
-    def share(c: np.ndarray) -> np.ndarray:  # (n, size): light falling in each column or row
-        return np.diff(0.5 * erf((edges[None] - c[:, None]) / scale), axis=1)
-
-    spots = photons * share(centres[:, 1])[:, :, None] * share(centres[:, 0])[:, None, :]
+    sigma = np.full(n, sigma_px)
+    spots = (photons * pixel_profile(centres[:, 1], sigma, size)[:, :, None]
+             * pixel_profile(centres[:, 0], sigma, size)[:, None, :])  # fmt: skip
     return spots + background, centres
 
 

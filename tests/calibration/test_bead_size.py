@@ -14,7 +14,7 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.special import erf
+from pixel_gaussian import pixel_profile
 
 from latentz.calibration import Calibration, Traces, calibrate
 from latentz.camera import Camera
@@ -35,18 +35,11 @@ def _sigmas_nm(z_nm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             S0_NM * np.sqrt(1 + ((z_nm + C_NM) / D_NM) ** 2))  # fmt: skip
 
 
-def _profile(centre_px: np.ndarray, sigma_px: np.ndarray, n: int) -> np.ndarray:
-    """(m, n) share of a unit 1D Gaussian in each of ``n`` pixels (pixel k spans k − ½ … k + ½)."""
-    edges = np.arange(n + 1) - 0.5
-    scaled = (edges[None, :] - centre_px[:, None]) / (np.sqrt(2) * sigma_px[:, None])
-    return np.diff(erf(scaled), axis=1) / 2
-
-
 def _points_image(x_px, y_px, z_nm, size: int) -> np.ndarray:
     """(m, size, size) pixel-integrated images of unit point sources."""
     sx, sy = _sigmas_nm(np.asarray(z_nm, float))
-    return (_profile(np.asarray(y_px, float), sy / PX_NM, size)[:, :, None]
-            * _profile(np.asarray(x_px, float), sx / PX_NM, size)[:, None, :])  # fmt: skip
+    return (pixel_profile(np.asarray(y_px, float), sy / PX_NM, size)[:, :, None]
+            * pixel_profile(np.asarray(x_px, float), sx / PX_NM, size)[:, None, :])  # fmt: skip
 
 
 def _ball(diameter_nm: float) -> np.ndarray:
