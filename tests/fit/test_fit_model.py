@@ -18,6 +18,7 @@ from latentz.fit import (
     render_rois,
 )
 from latentz.fit._model import as_param_array, covariance, model_and_jacobian
+from latentz.fit.api import starts_at_peaks
 
 
 def _one(**kw):
@@ -116,6 +117,21 @@ def test_kernel_start_is_the_twin_of_moment_start():
     np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10)
     # the start is already within a pixel of the truth for these well-separated spots
     assert np.median(np.hypot(expected[:, 0] - table.x, expected[:, 1] - table.y)) < 0.5
+
+
+def test_a_start_at_a_given_peak_stays_off_a_brighter_neighbour():
+    """ROIs of 15 px with a spot near the centre and one 3x brighter 5 px to its right: the plain
+    moment start goes to the bright spot; the start at the centre spot's pixel lies within a
+    pixel of it, and the kernels (`starts_at_peaks`) give what the NumPy twin gives."""
+    table = truth_table(200, 15, seed=6, photons=(1e3, 1e4), wmax=1.6)
+    bright = table.assign(x=table.x + 5.0, amplitude=3 * table.amplitude, background=0.0)
+    rois = noisy_rois(table, 15, seed=7) + noisy_rois(bright, 15, seed=8)
+    peaks = np.column_stack([np.rint(table.y), np.rint(table.x)]).astype(int)
+    expected = moment_start(rois, peaks)
+    np.testing.assert_allclose(starts_at_peaks(rois, peaks), expected, rtol=1e-10, atol=1e-10)
+    assert np.all(np.hypot(expected[:, 0] - table.x, expected[:, 1] - table.y) < 1.0)
+    plain = moment_start(rois)
+    assert np.all(np.hypot(plain[:, 0] - bright.x, plain[:, 1] - bright.y) < 1.0)
 
 
 @pytest.mark.parametrize(

@@ -30,6 +30,9 @@ __all__ = ["fit_batch_cuda"]
 #: The CPU device functions compiled again for CUDA, callees before callers.
 _DEVICE_FUNCTIONS = (
     "log_factorial",
+    "_border_mean",
+    "_box_sum",
+    "_start_at",
     "_start",
     "_row_start",
     "_atanh_series",

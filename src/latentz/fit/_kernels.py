@@ -54,34 +54,42 @@ _SERIES_MAX = 0.1
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _start(roi, out):
-    """Moment-based start (natural parameters) — twin of `_model.moment_start`."""
+def _border_mean(roi):
+    """Mean of the ROI's border pixels: the start's background."""
     h, w = roi.shape
     border = 0.0
     for j in range(w):
         border += roi[0, j] + roi[h - 1, j]
     for i in range(1, h - 1):
         border += roi[i, 0] + roi[i, w - 1]
-    bg = border / (2 * w + 2 * (h - 2))
-    best = -np.inf
-    i0 = 0
-    j0 = 0
+    return border / (2 * w + 2 * (h - 2))
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _box_sum(roi, bg, i, j):
+    """Sum of the background-subtracted pixels of the 3 x 3 box at ``(i, j)`` inside the ROI."""
+    h, w = roi.shape
+    s = 0.0
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            ii = i + di
+            jj = j + dj
+            if 0 <= ii < h and 0 <= jj < w:
+                s += roi[ii, jj] - bg
+    return s
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _start_at(roi, bg, i0, j0, out):
+    """Moment-based start (natural parameters) with the spot's peak at pixel ``(i0, j0)`` over
+    the background ``bg``: position from the peak's 3 x 3 box, widths from the ROI's moments and
+    its signal over the peak (see `_model.moment_start`)."""
+    h, w = roi.shape
     signal = 0.0
     for i in range(h):
         for j in range(w):
             signal += roi[i, j] - bg
-            s = 0.0
-            for di in range(-1, 2):
-                for dj in range(-1, 2):
-                    ii = i + di
-                    jj = j + dj
-                    if 0 <= ii < h and 0 <= jj < w:
-                        s += roi[ii, jj] - bg
-            if s > best:
-                best = s
-                i0 = i
-                j0 = j
-    peak = max(roi[i0, j0] - bg, best / 9.0)
+    peak = max(roi[i0, j0] - bg, _box_sum(roi, bg, i0, j0) / 9.0)
     tot = 0.0
     sx = 0.0
     sy = 0.0
@@ -126,6 +134,25 @@ def _start(roi, out):
     out[4] = min(max(math.sqrt(area * aspect), 0.5), wmax)
     out[5] = min(max(math.sqrt(area / aspect), 0.5), wmax)
     out[6] = rho
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _start(roi, out):
+    """Moment-based start (natural parameters) at the ROI's brightest 3 x 3 box — twin of
+    `_model.moment_start`."""
+    h, w = roi.shape
+    bg = _border_mean(roi)
+    best = -np.inf
+    i0 = 0
+    j0 = 0
+    for i in range(h):
+        for j in range(w):
+            s = _box_sum(roi, bg, i, j)
+            if s > best:
+                best = s
+                i0 = i
+                j0 = j
+    _start_at(roi, bg, i0, j0, out)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
@@ -251,8 +278,9 @@ def _far_deviance(roi, s2, mu_ref, w_ref, mu, weight):
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _evaluate(roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, grad, full=True,
-              hessian=True):
+def _evaluate(
+    roi, p, method, s2, scale, mu_ref, w_ref, mu_out, w_out, hess, grad, full=True, hessian=True
+):
     """Objective at internal parameters ``p``, with ``hess`` and ``grad`` for the next step.
 
     Returns ``(objective with the reference weights, objective with the weights at p)``; they
@@ -760,6 +788,23 @@ def fit_roi(
     out_chi2[k] = chi2
     out_iter[k] = iters
     out_conv[k] = conv
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def peak_starts(rois, rows, cols, windows, out):
+    """`_start_at` of each ROI of ``rois`` (n, h, w) on its window's pixels (``windows`` (n, 4):
+    row_start, row_stop, col_start, col_stop) with its peak at ``(rows[k], cols[k])``, written
+    to ``out`` (n, 7) in the whole ROI's pixels, in parallel; NaN for a window narrower than
+    3 px."""
+    for k in numba.prange(rois.shape[0]):
+        r0, r1, c0, c1 = windows[k, 0], windows[k, 1], windows[k, 2], windows[k, 3]
+        if r1 - r0 < 3 or c1 - c0 < 3:
+            out[k, :] = np.nan
+            continue
+        roi = rois[k, r0:r1, c0:c1]
+        _start_at(roi, _border_mean(roi), rows[k] - r0, cols[k] - c0, out[k])
+        out[k, 0] += c0
+        out[k, 1] += r0
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)

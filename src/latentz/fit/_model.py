@@ -272,13 +272,15 @@ def covariance(
     return out
 
 
-def moment_start(rois: np.ndarray) -> np.ndarray:
+def moment_start(rois: np.ndarray, peaks: np.ndarray | None = None) -> np.ndarray:
     """Starting values (n, 7) from image moments; the NumPy twin of the kernels' start.
 
     The background is the mean of the ROI's border pixels. The peak is the brightest pixel of the
-    3 x 3 box-filtered, background-subtracted ROI; the position is the centroid of the positive
-    signal in the 3 x 3 neighbourhood of that pixel; rho and the aspect ratio come from the second
-    moments of the positive signal, and the width scale from the total signal divided by the peak
+    3 x 3 box-filtered, background-subtracted ROI, or the pixel ``peaks`` (n, 2) gives as
+    (row, col) in ROI pixels (a detection's maximum: a brighter neighbour in the ROI does not draw
+    the start to itself); the position is the centroid of the positive signal in the 3 x 3
+    neighbourhood of that pixel; rho and the aspect ratio come from the second moments of the
+    positive signal, and the width scale from the total signal divided by the peak
     (``photons = 2 pi A wx wy sqrt(1 - rho^2)``), which noise inflates far less than moments do.
     """
     n, h, w = rois.shape
@@ -289,8 +291,10 @@ def moment_start(rois: np.ndarray) -> np.ndarray:
     sig = rois - bg[:, None, None]
     padded = np.pad(sig, ((0, 0), (1, 1), (1, 1)))
     box = sum(padded[:, di : di + h, dj : dj + w] for di in range(3) for dj in range(3))
-    flat = box.reshape(n, -1).argmax(axis=1)
-    i0, j0 = np.divmod(flat, w)
+    if peaks is None:
+        i0, j0 = np.divmod(box.reshape(n, -1).argmax(axis=1), w)
+    else:
+        i0, j0 = np.asarray(peaks, np.int64).T
     idx = np.arange(n)
     peak = np.maximum(sig[idx, i0, j0], box[idx, i0, j0] / 9.0)
     pos = np.clip(sig, 0.0, None)

@@ -19,7 +19,7 @@ from latentz.fit._model import PARAMS, as_param_array, photons_of
 from latentz.fit.robust import sandwich_batch
 from latentz.fit.windows import MIN_SIDE, check_windows, window_groups
 
-__all__ = ["FitResult", "fit_arrays", "fit_rois", "METHODS", "FIT_COLUMNS"]
+__all__ = ["FitResult", "fit_arrays", "fit_rois", "starts_at_peaks", "METHODS", "FIT_COLUMNS"]
 
 METHODS = {"lsq": _kernels.LSQ, "wlsq": _kernels.WLSQ, "mle": _kernels.MLE}
 ERROR_COLUMNS = tuple(f"{name}_err" for name in PARAMS)
@@ -98,6 +98,30 @@ def parameter_bounds(shape: tuple[int, int], readnoise: float) -> tuple[np.ndarr
         [w, h, np.inf, np.inf, math.log(max(h, w)), math.log(max(h, w)), math.atanh(_RHO_MAX)]
     )
     return lower, upper
+
+
+def starts_at_peaks(rois: Any, peaks: Any, windows: Any = None) -> np.ndarray:
+    """Starting values (n, 7) for `fit_arrays`'s ``init``: the moment start
+    (:func:`~latentz.fit.moment_start`) with each spot's peak at the pixel ``peaks`` (n, 2)
+    gives, (row, col) in ROI pixels, such as where a detector found its maximum. The ROI's
+    brightest box, where the plain moment start puts the peak, may be a brighter neighbour's,
+    which then draws the fit to itself. With ``windows`` (as in `fit_arrays`), each start is
+    taken from its window's pixels; x, y in the whole ROI's pixels. Computed by the numba
+    kernels, in parallel."""
+    data = np.ascontiguousarray(check_array("rois", rois, ndim=3, dtype_kind="uif"), np.float64)
+    n, h, w = data.shape
+    at = np.asarray(peaks)
+    if at.shape != (n, 2) or not np.issubdtype(at.dtype, np.integer):
+        raise ValueError(f"Expected `peaks` of ({n}, 2) integer pixels, got {at.shape} {at.dtype}.")
+    checked = check_windows(windows, n, (h, w))
+    if checked is None:
+        checked = np.tile(np.array([0, h, 0, w], np.int64), (n, 1))
+    if np.any(at < checked[:, [0, 2]]) or np.any(at >= checked[:, [1, 3]]):
+        raise ValueError("Expected each of `peaks` inside its ROI's window.")
+    out = np.empty((n, len(PARAMS)))
+    rows, cols = (np.ascontiguousarray(a, np.int64) for a in at.T)
+    _kernels.peak_starts(data, rows, cols, np.ascontiguousarray(checked), out)
+    return out
 
 
 def fit_arrays(
