@@ -264,8 +264,10 @@ def test_each_spot_is_fitted_in_a_roi_centred_on_its_own_position():
     # where the refit crossed a half pixel its ROI is one off from the final rounding
     clear = (np.abs(found["x"] % 1 - 0.5) > 0.05) & (np.abs(found["y"] % 1 - 0.5) > 0.05)
     assert clear.mean() > 0.8
+    # localize's refit starts from its first fit, the direct fit from the moment start: both
+    # stop within about 0.01 Cramér-Rao bounds of the optimum (in a ROI one pixel off, these
+    # values move by 0.5-5 bounds, median)
     for column in ("x", "y", "wx", "wy", "rho", "amplitude"):
         shift = cx - 7 if column == "x" else cy - 7 if column == "y" else 0
-        np.testing.assert_allclose(
-            found[column].to_numpy()[clear], (direct[column].to_numpy() + shift)[clear], rtol=1e-9
-        )
+        gap = found[column].to_numpy() - (direct[column].to_numpy() + shift)
+        assert np.all(np.abs(gap / direct[f"{column}_err"].to_numpy())[clear] < 0.05), column

@@ -6,7 +6,9 @@ calibration centres its fixed ROI on the particle: the fitted widths and centre 
 truncated spot depend on where the ROI sits, and a first guess (a detection peak, a prediction)
 can be a pixel off for a defocused, asymmetric image. At the frame's edge the ROI is clipped to
 the frame: its pixels outside are left out of the fit. The errors are then the sandwich's of each
-final fit, in its own ROI.
+final fit, in its own ROI. Without starting values, each fit starts at the pixel its ROI was
+placed on (:func:`latentz.fit.api.starts_at_peaks`), not at the ROI's brightest pixels, which may
+be a brighter neighbour's.
 """
 
 from __future__ import annotations
@@ -17,7 +19,14 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from latentz.detect import roi_windows
-from latentz.fit.api import FitResult, fit_arrays, replace_rows, result_table, with_sandwich
+from latentz.fit.api import (
+    FitResult,
+    fit_arrays,
+    replace_rows,
+    result_table,
+    starts_at_peaks,
+    with_sandwich,
+)
 
 if TYPE_CHECKING:
     from latentz.calibration.result import Calibration
@@ -55,14 +64,16 @@ def fit_recentred(
     device: str = "auto",
 ) -> Recentred:
     """Fit ``rois`` (first pixels ``corners = (row0, col0)``, ``windows`` where clipped) from
-    ``init`` (n, 7, ROI px; default the moment start), then fit again in the ROI centred on each
-    fit that lands on another pixel. ``read(moved, row0, col0)`` returns the ROIs of the rows
+    ``init`` (n, 7, ROI px), then fit again in the ROI centred on each fit that lands on another
+    pixel, from the first fit. ``read(moved, row0, col0)`` returns the ROIs of the rows
     ``moved`` (boolean mask) at those first pixels; ``centres = (rows, cols)`` are the pixels
-    the ROIs were placed on, kept where a fit is not finite. The refit starts from the first fit
-    when ``init`` is given, else from the moment start."""
+    the ROIs were placed on, kept where a fit is not finite. ``init`` defaults to the moment
+    start with its peak on the pixel each ROI was placed on (`_placed`)."""
     rois = np.asarray(rois, np.float64)
     size = rois.shape[-1]
     row0, col0 = corners
+    if init is None:
+        init = starts_at_peaks(rois, _placed(centres, corners, windows, size), windows)
     fit = fit_arrays(rois, method=method, readnoise=readnoise, init=init, windows=windows,
                      device=device)  # fmt: skip
     x, y = fit.params[:, 0] + col0, fit.params[:, 1] + row0
@@ -74,7 +85,7 @@ def fit_recentred(
     if moved.any():
         refit, again = _fit_again(
             read, moved, fit, (row0, col0), (new_row0, new_col0), windows, method=method,
-            readnoise=readnoise, device=device, from_fit=init is not None,
+            readnoise=readnoise, device=device,
         )  # fmt: skip
         fit = replace_rows(fit, refit, moved)
         rois = rois.copy()
@@ -126,7 +137,6 @@ def on_calibration_pixels(
     refit, again = _fit_again(
         read, moved, done.fit._replace(params=local), (done.row0, done.col0),
         (new_row0, new_col0), windows, method=method, readnoise=readnoise, device=device,
-        from_fit=True,
     )  # fmt: skip
     refit = with_sandwich(refit, again, method=method, readnoise=readnoise,
                           windows=windows[moved])  # fmt: skip
@@ -153,18 +163,30 @@ def _fit_again(
     method: str,
     readnoise: float,
     device: str,
-    from_fit: bool,
 ) -> tuple[FitResult, np.ndarray]:
     """The rows ``moved`` fitted in their ROIs at first pixels ``new = (row0, col0)``, read
-    with ``read``, from ``fit`` (ROI px of the ROIs at ``old``) carried to the new ROIs when
-    ``from_fit``, else from the moment start; and those ROIs."""
+    with ``read``, from ``fit`` (ROI px of the ROIs at ``old``) carried to the new ROIs; and
+    those ROIs."""
     row0, col0 = new[0][moved], new[1][moved]
     again = read(moved, row0, col0)
-    start = None
-    if from_fit:
-        start = fit.params[moved].copy()
-        start[:, 0] += old[1][moved] - col0
-        start[:, 1] += old[0][moved] - row0
+    start = fit.params[moved].copy()
+    start[:, 0] += old[1][moved] - col0
+    start[:, 1] += old[0][moved] - row0
     refit = fit_arrays(again, method=method, readnoise=readnoise, init=start,
                        windows=windows[moved], device=device)  # fmt: skip
     return refit, again
+
+
+def _placed(
+    centres: tuple[np.ndarray, np.ndarray],
+    corners: tuple[np.ndarray, np.ndarray],
+    windows: np.ndarray | None,
+    size: int,
+) -> np.ndarray:
+    """The pixels (n, 2; row, col in ROI px) that ROIs with first pixels ``corners`` were placed
+    on, ``centres`` (full-frame px), moved into each ROI's window (the frame) where they lie
+    outside it."""
+    placed = np.column_stack([centres[0] - corners[0], centres[1] - corners[1]])
+    if windows is None:
+        return np.clip(placed, 0, size - 1)
+    return np.clip(placed, windows[:, [0, 2]], windows[:, [1, 3]] - 1)
