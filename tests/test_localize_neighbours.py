@@ -25,20 +25,30 @@ def gaussian(shape, x, y, photons, sigma=SIGMA):
     return peak * np.exp(-((cols - x) ** 2 + (rows - y) ** 2) / (2 * sigma**2))
 
 
-@pytest.fixture(scope="module")
-def frames_and_dim_spots():
-    rng = np.random.default_rng(3)
-    frames, dim = [], []
-    for t in range(12):
+def pair_frames(
+    rng: np.random.Generator, n_frames: int, dim: float, bright: float
+) -> tuple[np.ndarray, list[tuple[int, float, float]], list[tuple[int, float, float]]]:
+    """``n_frames`` Poisson frames of dim spots (photons ``dim``) each ``APART`` px left of a
+    bright one (``bright``), two columns of them every ``STEP`` px; and the (frame, x, y) of
+    each dim and each bright spot."""
+    frames, dims, brights = [], [], []
+    for t in range(n_frames):
         image = np.full((SIZE, SIZE), BACKGROUND)
         for cy in range(STEP // 2, SIZE, STEP):
             for cx in (20.0, 64.0):
                 x, y = cx + rng.uniform(-0.5, 0.5), cy + rng.uniform(-0.5, 0.5)
-                image += gaussian(image.shape, x, y, DIM)
-                image += gaussian(image.shape, x + APART, y, BRIGHT)
-                dim.append((t, x, y))
+                image += gaussian(image.shape, x, y, dim)
+                image += gaussian(image.shape, x + APART, y, bright)
+                dims.append((t, x, y))
+                brights.append((t, x + APART, y))
         frames.append(rng.poisson(image))
-    return np.stack(frames).astype(float), np.array(dim)
+    return np.stack(frames).astype(float), dims, brights
+
+
+@pytest.fixture(scope="module")
+def frames_and_dim_spots():
+    frames, dim, _ = pair_frames(np.random.default_rng(3), 12, DIM, BRIGHT)
+    return frames, np.array(dim)
 
 
 def test_a_dim_spot_beside_a_bright_one_is_unbiased_and_its_error_holds(frames_and_dim_spots):
@@ -105,24 +115,11 @@ def test_a_dim_spot_with_a_brighter_neighbour_inside_its_roi_is_fitted_where_it_
     least 80 % converge on the dim spot (88 %: the start's widths, from the whole ROI's moments,
     take in the neighbour's light, and the rest slide to it); a start at the ROI's brightest box
     put every one of them on its bright neighbour, a duplicate of that neighbour's fit."""
-    rng = np.random.default_rng(5)
-    frames, spots = [], []
-    for t in range(6):
-        image = np.full((SIZE, SIZE), BACKGROUND)
-        for cy in range(STEP // 2, SIZE, STEP):
-            for cx in (20.0, 64.0):
-                x, y = cx + rng.uniform(-0.5, 0.5), cy + rng.uniform(-0.5, 0.5)
-                image += gaussian(image.shape, x, y, 1000.0)
-                image += gaussian(image.shape, x + APART, y, 5000.0)
-                spots += [(t, x, y), (t, x + APART, y)]
-        frames.append(rng.poisson(image))
-    locs = localize(np.stack(frames).astype(float), roi_size=15, pairs=False)
+    frames, dims, brights = pair_frames(np.random.default_rng(5), 6, 1000.0, 5000.0)
+    locs = localize(frames, roi_size=15, pairs=False)
     kept = locs[locs["converged"] & ~locs["duplicate"]]
-    errors = np.array([
-        np.hypot(rows["x"] - x, rows["y"] - y).min()
-        for t, x, y in spots
-        for rows in [kept[kept["frame"] == t]]
-    ])  # fmt: skip
-    dim, bright = errors[0::2], errors[1::2]
+    dim, bright = (np.array([np.hypot(rows["x"] - x, rows["y"] - y).min()
+                             for t, x, y in spots for rows in [kept[kept["frame"] == t]]])
+                   for spots in (dims, brights))  # fmt: skip
     assert np.all(bright < 0.5), bright.max()
     assert np.mean(dim < 0.5) >= 0.8, np.sort(dim)[-10:]
