@@ -99,6 +99,15 @@ def test_a_roi_that_keeps_one_particle_loses_to_one_whose_errors_are_held_out():
     assert choose_roi({11: _score(30.0, 60.0) | {"kept": 1}, 15: lone})[0] == 15
 
 
+def test_a_roi_that_culls_most_particles_loses_to_one_that_keeps_them():
+    """A small ROI that keeps 32 of the 103 particles a larger one keeps is scored over the
+    particles its culling selected (family draw 18: 652 against 723 nm near focus); the larger
+    ROI is chosen unless every candidate keeps as few."""
+    culled = _score(25.0, 0.0, measured_far=False) | {"kept": 32}
+    assert choose_roi({9: culled, 13: _score(30.0, 40.0) | {"kept": 103}})[0] == 13
+    assert choose_roi({9: culled, 13: _score(30.0, 40.0) | {"kept": 60}})[0] == 9
+
+
 def test_a_roi_that_reads_emitters_beyond_its_range_in_range_loses():
     """Beyond the usable range a spot that has outgrown a small ROI can look like one inside
     it: read in range, its z is wrong by microns and its reported error does not say so. Two

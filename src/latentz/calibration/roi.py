@@ -36,12 +36,14 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
    good as* the best when it exceeds it by no more than their noise (the standard errors in
    quadrature) or :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one
    particle is scored on that particle's own images read by its own models (nothing is held
-   out), so it competes only where no candidate keeps two. The candidates as good as the best
-   near focus are eligible, and the smallest of them as good as the best of them over the range
-   is chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
-   nothing near focus, and a shorter usable z range is preferred to lost precision near focus.
-   A candidate whose calibration fails is skipped, so the choice never fails where a smaller
-   ROI works.
+   out), so it competes only where no candidate keeps two; one that keeps under
+   :data:`KEPT_SHARE` of the most any candidate keeps is scored on the particles its culling
+   selected, and competes only where every candidate keeps as few. The candidates as good as
+   the best near focus are eligible, and the smallest of them as good as the best of them over
+   the range is chosen. So a larger ROI is taken only where it measures better beyond the noise
+   and costs nothing near focus, and a shorter usable z range is preferred to lost precision
+   near focus. A candidate whose calibration fails is skipped, so the choice never fails where
+   a smaller ROI works.
 """
 
 from __future__ import annotations
@@ -94,6 +96,10 @@ CROWDED_FRACTION = 0.25
 EMITTER_PHOTONS = (1e3, 1e4)
 #: A candidate whose near-focus error is within this fraction of the best is eligible.
 CORE_TOLERANCE = 0.05
+#: A candidate competes only where it keeps at least this share of the particles that the
+#: candidate keeping most keeps: its errors are scored over the particles it keeps, which its
+#: culling selects, and the field has that many fewer particles to read emitters by.
+KEPT_SHARE = 0.5
 
 
 def roi_limit(image_shape: tuple[int, int]) -> int:
@@ -223,7 +229,8 @@ def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
         for name, planes in (("core", core), ("range", union)):
             value, se = _rms_over(scores[r], planes)
             table[r] |= {f"{name}_nm": value, f"{name}_se_nm": se}
-    held_out = [r for r in rois if table[r]["kept"] >= 2] or rois
+    most = max(table[r]["kept"] for r in rois)
+    held_out = [r for r in rois if table[r]["kept"] >= max(2, KEPT_SHARE * most)] or rois
     eligible = _as_good(table, held_out, "core") or held_out  # none measures: range and size
     chosen = min(_as_good(table, eligible, "range") or eligible)
     row = table[chosen]
