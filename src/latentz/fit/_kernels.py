@@ -791,14 +791,14 @@ def fit_roi(
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def peak_starts(rois, rows, cols, windows, out):
+def peak_starts(rois, rows, cols, windows, min_side, out):
     """`_start_at` of each ROI of ``rois`` (n, h, w) on its window's pixels (``windows`` (n, 4):
     row_start, row_stop, col_start, col_stop) with its peak at ``(rows[k], cols[k])``, written
     to ``out`` (n, 7) in the whole ROI's pixels, in parallel; NaN for a window narrower than
-    3 px."""
+    ``min_side`` px (one that is not fitted)."""
     for k in numba.prange(rois.shape[0]):
         r0, r1, c0, c1 = windows[k, 0], windows[k, 1], windows[k, 2], windows[k, 3]
-        if r1 - r0 < 3 or c1 - c0 < 3:
+        if r1 - r0 < min_side or c1 - c0 < min_side:
             out[k, :] = np.nan
             continue
         roi = rois[k, r0:r1, c0:c1]

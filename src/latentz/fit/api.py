@@ -120,7 +120,7 @@ def starts_at_peaks(rois: Any, peaks: Any, windows: Any = None) -> np.ndarray:
         raise ValueError("Expected each of `peaks` inside its ROI's window.")
     out = np.empty((n, len(PARAMS)))
     rows, cols = (np.ascontiguousarray(a, np.int64) for a in at.T)
-    _kernels.peak_starts(data, rows, cols, np.ascontiguousarray(checked), out)
+    _kernels.peak_starts(data, rows, cols, np.ascontiguousarray(checked), MIN_SIDE, out)
     return out
 
 
