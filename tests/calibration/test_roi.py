@@ -69,12 +69,21 @@ def test_focus_width_is_the_narrowest_geometric_mean_width():
     assert focus_width_px(traces) == pytest.approx(1.2)
 
 
-def _score(core: float, far: float, measured_far: bool = True) -> dict:
-    """One candidate's expected errors on 6 planes: 4 near focus, 2 far."""
-    errors = np.array([[core] * 4 + [far] * 2] * 3)
-    measured = np.array([1.0] * 4 + [1.0 if measured_far else 0.0] * 2)
-    return {"errors": errors, "measured": measured, "guess_nm": 1000.0,
-            "usable_nm": np.array([-1.0, 1.0]), "kept": 10}  # fmt: skip
+def _particles(n: int, stack: int = 0) -> np.ndarray:
+    """(n, 3) stack and (x, y) positions (pixels) of ``n`` particles 40 px apart on a row."""
+    return np.column_stack([np.full(n, stack), 40.0 * np.arange(n), np.full(n, 20.0)])
+
+
+def _score(core: float, far: float, measured_far: bool = True, kept: int = 10) -> dict:
+    """One candidate's expected errors on 6 planes, 4 near focus and 2 far, alike for each of
+    the ``kept`` particles of :func:`_particles` and each kind of emitter."""
+    measured = np.array([True] * 4 + [measured_far] * 2)
+    squares = np.where(measured, np.array([core] * 4 + [far] * 2) ** 2, np.nan)
+    return {"particles": _particles(kept),
+            "particle_sq": np.tile(squares, (3, kept, 1)),
+            "alias_sq": np.full((3, kept, 6), np.nan),
+            "measured_each": np.tile(measured, (kept, 1)),
+            "guess_nm": 1000.0, "usable_nm": np.array([-1.0, 1.0])}  # fmt: skip
 
 
 def test_a_roi_that_costs_precision_near_focus_loses_to_a_shorter_range():
@@ -93,19 +102,60 @@ def test_a_roi_as_good_near_focus_wins_by_its_range():
 
 def test_a_roi_that_keeps_one_particle_loses_to_one_whose_errors_are_held_out():
     """A lone particle's emitters are read by its own models: its better score is in-sample."""
-    lone = _score(20.0, 30.0) | {"kept": 1}
+    lone = _score(20.0, 30.0, kept=1)
     assert choose_roi({11: _score(30.0, 60.0), 15: lone})[0] == 11
     # where every candidate keeps one particle, the rule judges them as it judges any
-    assert choose_roi({11: _score(30.0, 60.0) | {"kept": 1}, 15: lone})[0] == 15
+    assert choose_roi({11: _score(30.0, 60.0, kept=1), 15: lone})[0] == 15
 
 
-def test_a_roi_that_culls_most_particles_loses_to_one_that_keeps_them():
-    """A small ROI that keeps 32 of the 103 particles a larger one keeps is scored over the
-    particles its culling selected (family draw 18: 652 against 723 nm near focus); the larger
-    ROI is chosen unless every candidate keeps as few."""
-    culled = _score(25.0, 0.0, measured_far=False) | {"kept": 32}
-    assert choose_roi({9: culled, 13: _score(30.0, 40.0) | {"kept": 103}})[0] == 13
-    assert choose_roi({9: culled, 13: _score(30.0, 40.0) | {"kept": 60}})[0] == 9
+def test_rois_are_compared_over_the_particles_both_keep():
+    """A 9 px ROI keeps 32 of the 103 particles a 13 px one keeps, and its culling selected
+    the particles whose errors are small: over its own it errs 25 nm near focus, the 13 px ROI
+    30 nm over all of its own. Over the 32 they share the 13 px ROI errs 20 nm, and wins; where
+    it errs 10 % more than the 9 px ROI over them, the 9 px ROI wins though it keeps fewer."""
+    culled = _score(25.0, 0.0, measured_far=False, kept=32)
+    kept = _score(30.0, 40.0, kept=103)
+    for shared_nm, chosen in ((20.0, 13), (25.0 * (1 + 2 * CORE_TOLERANCE), 9)):
+        kept["particle_sq"][:, :32, :4] = shared_nm**2
+        choice, record = choose_roi({9: culled, 13: kept})
+        assert choice == chosen
+        loser = record["candidates"][str(22 - chosen)]
+        assert loser["beaten_by"]["core"] == [chosen] and loser["kept"] in (32, 103)
+
+
+def test_particles_are_shared_only_within_a_pixel_in_the_same_stack():
+    """Two ROIs keep 10 particles each; the 15 px one errs 60 nm on the last 5, 30 nm like the
+    11 px one on the rest, and loses where they are the same particles (within a pixel, in the
+    same stack). Where its last 5 lie in another stack or 2 px away, the two are compared over
+    the first 5 only, and tie: the smaller wins, and neither is beaten."""
+    small, large = _score(30.0, 40.0), _score(30.0, 40.0)
+    large["particle_sq"][:, 5:] = 60.0**2
+    large["particles"][:5, 1] += 0.8
+    assert choose_roi({11: small, 15: large})[1]["candidates"]["15"]["beaten_by"]["core"] == [11]
+    for moved in (_particles(10, stack=1), _particles(10) + [0.0, 2.0, 0.0]):
+        large["particles"] = np.concatenate([_particles(5), moved[5:]])
+        chosen, record = choose_roi({11: small, 15: large})
+        assert chosen == 11 and record["candidates"]["15"]["beaten_by"]["core"] == []
+        assert choose_roi({15: small, 11: large})[0] == 11  # the tie goes to the smaller
+
+
+def test_where_each_roi_is_beaten_those_beaten_least_are_eligible():
+    """Scored over different particles, 13 px beats 17 px, 17 px beats 21 px and 21 px beats
+    13 px near focus (20 against 30 nm over the two particles each pair shares), and all three
+    beat 11 px, which errs 40 nm on every particle. No ROI is unbeaten; 11 px, beaten most,
+    must not win by its size."""
+    errors_nm = {13: [30, 30, 20, 20, 0, 0], 17: [0, 0, 30, 30, 20, 20],
+                 21: [20, 20, 0, 0, 30, 30], 11: [40] * 6}  # fmt: skip
+    scores = {}
+    for r, errors in errors_nm.items():
+        rows = np.flatnonzero(errors)
+        scores[r] = _score(40.0, 40.0, kept=rows.size)
+        scores[r]["particles"] = _particles(6)[rows]
+        scores[r]["particle_sq"][:, :, :4] = np.asarray(errors, float)[rows, None] ** 2
+    chosen, record = choose_roi(scores)
+    assert chosen == 13
+    assert [record["candidates"][str(r)]["beaten_by"]["core"] for r in (11, 13, 17, 21)] == [
+        [13, 17, 21], [21], [13], [17]]  # fmt: skip
 
 
 def test_a_roi_that_reads_emitters_beyond_its_range_in_range_loses():
@@ -115,11 +165,7 @@ def test_a_roi_that_reads_emitters_beyond_its_range_in_range_loses():
     usable range are read in range (a tenth of them, 1.5 µm off) loses to the one that flags
     them out of range, though it is smaller."""
     honest, aliasing = _score(30.0, 40.0), _score(30.0, 40.0)
-    n_kinds, n_z = honest["errors"].shape
-    for score in (honest, aliasing):
-        score["particle_sq"] = np.full((n_kinds, score["kept"], n_z), 30.0**2)
-        score["alias_sq"] = np.full((n_kinds, score["kept"], n_z), np.nan)
-    aliasing["alias_sq"][:2, : aliasing["kept"] // 10, :] = 1500.0**2  # the dim kinds
+    aliasing["alias_sq"][:2, :1, :] = 1500.0**2  # the dim kinds
     chosen, record = choose_roi({11: aliasing, 15: honest})
     assert chosen == 15
     assert record["candidates"]["11"]["core_nm"] > 2 * record["candidates"]["15"]["core_nm"]

@@ -20,7 +20,6 @@ from realdata import FIT3D_CAMERA, SMLM_CAMERA, fit3d_bead, need, score_z, smlm_
 
 import latentz as lz
 from latentz._shared.sanity import LatentzWarning
-from latentz.calibration.roi import CORE_TOLERANCE
 from latentz.calibration.workflow import NOISE_WARNING_SCALE
 
 pytestmark = pytest.mark.realdata
@@ -74,12 +73,11 @@ def test_smlm_beads_calibrate_with_defaults():
     cal = lz.calibrate(stack, z, camera=lz.Camera(**SMLM_CAMERA))
     assert len(cal.kept) == 6
     assert cal.shape == "auto" and "auto" in cal.shape_choice["reason"]
-    # the ROI is the recorded choice, and its expected z error near focus is within the
-    # tolerance of the best candidate's
+    # the ROI is the recorded choice, and no candidate beats it near focus over the
+    # particles both keep
     choice = cal.options["roi_choice"]
     assert cal.roi_size == choice["chosen"]
-    best = min(row["core_nm"] for row in choice["candidates"].values())
-    assert choice["candidates"][str(cal.roi_size)]["core_nm"] <= (1 + CORE_TOLERANCE) * best
+    assert choice["candidates"][str(cal.roi_size)]["beaten_by"]["core"] == []
     # the usable range stops before the ring images below focus (−600..−400 nm)
     assert np.all(cal.usable_z_nm[cal.kept, 0] > -400)
 

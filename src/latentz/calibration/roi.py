@@ -32,18 +32,19 @@ is fitted in, and such a rule runs away). The ROI is therefore chosen by what it
    planes (where every candidate measures: at least half its kept particles usable, and some
    kind of emitter localized to better than half a guess; near focus), pooled with every alias
    of the stack; ``range_nm`` the same over every plane any candidate measures; each has a
-   standard error over the particles (over the planes for a lone particle). A candidate is *as
-   good as* the best when it exceeds it by no more than their noise (the standard errors in
-   quadrature) or :data:`CORE_TOLERANCE`, whichever is larger. A candidate that keeps one
-   particle is scored on that particle's own images read by its own models (nothing is held
-   out), so it competes only where no candidate keeps two; one that keeps under
-   :data:`KEPT_SHARE` of the most any candidate keeps is scored on the particles its culling
-   selected, and competes only where every candidate keeps as few. The candidates as good as
-   the best near focus are eligible, and the smallest of them as good as the best of them over
-   the range is chosen. So a larger ROI is taken only where it measures better beyond the noise
-   and costs nothing near focus, and a shorter usable z range is preferred to lost precision
-   near focus. A candidate whose calibration fails is skipped, so the choice never fails where
-   a smaller ROI works.
+   standard error over the particles (over the planes for a lone particle). Candidates cull
+   different particles, and a candidate scored over the particles its culling kept would be
+   judged on a selection, so each pair is compared over the particles both keep (the same
+   stack, within :data:`SAME_PARTICLE_PX`): one *beats* the other when it errs less by more
+   than their noise (the standard errors in quadrature) and more than :data:`CORE_TOLERANCE`.
+   A candidate that keeps one particle is scored on that particle's own images read by its own
+   models (nothing is held out), so it competes only where no candidate keeps two. The
+   candidates that no other beats near focus are eligible (where each is beaten, those beaten
+   by the fewest), and the smallest of them that no other of them beats over the range is
+   chosen. So a larger ROI is taken only where it measures better beyond the noise and costs
+   nothing near focus, and a shorter usable z range is preferred to lost precision near focus.
+   A candidate whose calibration fails is skipped, so the choice never fails where a smaller
+   ROI works.
 """
 
 from __future__ import annotations
@@ -96,10 +97,9 @@ CROWDED_FRACTION = 0.25
 EMITTER_PHOTONS = (1e3, 1e4)
 #: A candidate whose near-focus error is within this fraction of the best is eligible.
 CORE_TOLERANCE = 0.05
-#: A candidate competes only where it keeps at least this share of the particles that the
-#: candidate keeping most keeps: its errors are scored over the particles it keeps, which its
-#: culling selects, and the field has that many fewer particles to read emitters by.
-KEPT_SHARE = 0.5
+#: Two candidates' kept particles are one particle where they lie in the same stack within
+#: this many pixels on both axes.
+SAME_PARTICLE_PX = 1.0
 
 
 def roi_limit(image_shape: tuple[int, int]) -> int:
@@ -169,15 +169,15 @@ def expected_errors(
 ) -> dict[str, np.ndarray]:
     """Expected z error (nm) of typical emitters on every plane of ``cal``'s stack (module
     notes, step 2), from the calibration ``stacks`` (ADU) read by ``camera`` and their
-    ``background`` ((n_stacks, n_z) photons per pixel, :func:`frame_background`): ``errors``
-    (n_kinds, n_z), one row per photon count of :data:`EMITTER_PHOTONS` and a last for emitters
-    like the calibration particles, RMS over the kept particles; ``particle_sq`` (n_kinds,
-    n_kept, n_z) each kept particle's capped squared error (NaN where unmeasured), for the
-    standard errors of :func:`choose_roi`; ``alias_sq`` (n_kinds, n_kept, n_z) the same of the
-    aliases (NaN where none); ``measured`` (n_z,) the fraction of them whose plane is usable
-    and whose bright image is read by its neighbour; ``guess_nm`` the error of a guess;
-    ``usable_nm`` the median over the kept particles of their usable range's ends
-    (tilt-corrected z)."""
+    ``background`` ((n_stacks, n_z) photons per pixel, :func:`frame_background`):
+    ``particles`` (n_kept, 3) each kept particle's stack and (x, y) position (pixels);
+    ``particle_sq`` (n_kinds, n_kept, n_z) each kept particle's squared error capped at a
+    guess's (NaN where its plane is not usable), one kind per photon count of
+    :data:`EMITTER_PHOTONS` and a last for emitters like the calibration particles;
+    ``alias_sq`` (n_kinds, n_kept, n_z) the same of the aliases (NaN where none);
+    ``measured_each`` (n_kept, n_z) whether the particle's plane is usable and its bright image
+    is read by its neighbour; ``guess_nm`` the error of a guess; ``usable_nm`` the median over
+    the kept particles of their usable range's ends (tilt-corrected z)."""
     local, shape, kept = cal.local, cal.shape, cal.kept
     use = np.zeros(cal.culled.size, bool)
     use[kept] = True
@@ -186,26 +186,16 @@ def expected_errors(
     z = cal.traces.z_nm
     guess = float(np.ptp(z)) / np.sqrt(12.0)
     usable = cal.usable_planes  # beyond it a read in range is an alias
-    kinds, aliases = [], []
-    for error in [emitter_errors(cal, stacks, camera, background, photons)
-                  for photons in EMITTER_PHOTONS] + [cv]:  # fmt: skip
-        kinds.append(np.where(usable, np.abs(error), np.nan))
-        aliases.append(np.where(usable, np.nan, np.abs(error)))  # inf, NaN: out of range
-    errors, squares = [], []
-    for error in kinds:
-        measured = ~np.isnan(error[kept])  # inf: not localized, a guess
-        capped = np.where(measured, np.minimum(np.abs(error[kept]), guess), 0.0)
-        count = measured.sum(axis=0)
-        rms = np.sqrt(np.sum(capped**2, axis=0) / np.maximum(count, 1))
-        errors.append(np.where(count > 0, rms, guess))  # none measured: a guess
-        squares.append(np.where(measured, capped**2, np.nan))
+    errors = np.abs([emitter_errors(cal, stacks, camera, background, photons)
+                     for photons in EMITTER_PHOTONS] + [cv])[:, kept]  # fmt: skip
+    capped = np.minimum(errors, guess) ** 2  # inf: not localized, a guess; NaN stays
+    usable = usable[kept]
     usable_nm = np.nanmedian(cal.usable_z_nm[kept], axis=0) if kept.size else [np.nan] * 2
     return {
-        "errors": np.array(errors),
-        "particle_sq": np.array(squares),
-        "alias_sq": np.array([np.where(np.isfinite(a), np.minimum(a, guess) ** 2, np.nan)[kept]
-                              for a in aliases]),  # fmt: skip
-        "measured": (usable & ~np.isnan(cv))[kept].mean(axis=0) if kept.size else np.zeros(z.size),
+        "particles": np.column_stack([cal.traces.stack[kept], cal.positions[kept]]),
+        "particle_sq": np.where(usable, capped, np.nan),
+        "alias_sq": np.where(usable | ~np.isfinite(errors), np.nan, capped),  # inf: out of range
+        "measured_each": usable & ~np.isnan(cv[kept]),
         "guess_nm": guess,
         "usable_nm": np.asarray(usable_nm, dtype=np.float64),
     }
@@ -214,37 +204,94 @@ def expected_errors(
 def choose_roi(scores: dict[int, dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     """The ROI to calibrate with, from :func:`expected_errors` of each candidate that
     calibrated (module notes, step 3), and a JSON-able record of why: ``chosen``, a one-line
-    ``reason`` and each candidate's ``core_nm`` and ``range_nm`` with their standard errors
-    (``core_se_nm``, ``range_se_nm``), ``usable_nm`` and ``kept``."""
+    ``reason`` and each candidate's ``core_nm`` and ``range_nm`` over its own kept particles
+    with their standard errors (``core_se_nm``, ``range_se_nm``), ``usable_nm``, ``kept`` and
+    ``beaten_by`` (near focus and over the range, the candidates that beat it over the
+    particles both keep)."""
     rois = sorted(scores)
-    measured = np.array([_measures(scores[r]) for r in rois])
+    held_out = [r for r in rois if len(scores[r]["particles"]) >= 2] or rois
+    own = {r: _judged(scores[r], np.ones(len(scores[r]["particles"]), bool)) for r in rois}
+    measured = np.array([_measures(own[r]) for r in held_out])
     core = np.all(measured, axis=0)
     if not core.any():  # no plane every candidate measures: judge on each one's own
         core = np.any(measured, axis=0)
-    union = np.any(measured, axis=0)
+    planes = {"core": core, "range": np.any(measured, axis=0)}
     table = {}
     for r in rois:
         table[r] = {"usable_nm": [float(v) for v in scores[r]["usable_nm"]],
-                    "kept": int(scores[r].get("kept", 0))}  # fmt: skip
-        for name, planes in (("core", core), ("range", union)):
-            value, se = _rms_over(scores[r], planes)
+                    "kept": len(scores[r]["particles"])}  # fmt: skip
+        for name, where in planes.items():
+            value, se = _rms_over(own[r], where)
             table[r] |= {f"{name}_nm": value, f"{name}_se_nm": se}
-    most = max(table[r]["kept"] for r in rois)
-    held_out = [r for r in rois if table[r]["kept"] >= max(2, KEPT_SHARE * most)] or rois
-    eligible = _as_good(table, held_out, "core") or held_out  # none measures: range and size
-    chosen = min(_as_good(table, eligible, "range") or eligible)
+
+    def beaten(rivals: list[int], name: str) -> dict[int, list[int]]:
+        return {r: [o for o in rivals if o != r and _beats(scores[o], scores[r], planes[name])]
+                for r in rivals}  # fmt: skip
+
+    near = beaten(held_out, "core")
+    eligible = _least_beaten(near)
+    far = beaten(eligible, "range")
+    chosen = min(_least_beaten(far))
+    for r in rois:
+        table[r]["beaten_by"] = {"core": near.get(r, []), "range": far.get(r, [])}
     row = table[chosen]
     lo, hi = row["usable_nm"]
     reason = (
         f"roi_size={chosen}: the smallest with the best expected z error of 1e3-1e4-photon "
         f"emitters and of particles like the calibration's among ROIs "
-        f"{', '.join(map(str, rois))} px ({row['core_nm']:.0f} nm near focus, "
-        f"{row['range_nm']:.0f} nm over the stack; usable z {lo:.0f} to {hi:.0f} nm)"
+        f"{', '.join(map(str, rois))} px, each pair compared over the particles both keep "
+        f"({row['core_nm']:.0f} nm near focus, {row['range_nm']:.0f} nm over the stack; usable "
+        f"z {lo:.0f} to {hi:.0f} nm)"
     )
     return chosen, {
         "chosen": chosen,
         "reason": reason,
         "candidates": {str(r): t for r, t in table.items()},
+    }
+
+
+def _least_beaten(beaten_by: dict[int, list[int]]) -> list[int]:
+    """The candidates that no other beats, or where each is beaten (scored over different
+    particles, A can beat B, B beat C and C beat A), those beaten by the fewest."""
+    fewest = min(len(rivals) for rivals in beaten_by.values())
+    return [r for r, rivals in beaten_by.items() if len(rivals) == fewest]
+
+
+def _beats(one: dict[str, Any], other: dict[str, Any], planes: np.ndarray) -> bool:
+    """Whether candidate ``one`` errs less than ``other`` over ``planes`` (:func:`_rms_over`)
+    by more than their noise (the two standard errors in quadrature) and more than
+    :data:`CORE_TOLERANCE`, both scored over the particles both keep (:func:`_shared`; over
+    their own where fewer than two are shared)."""
+    rows = _shared(one["particles"], other["particles"])
+    if min(rows[0].sum(), rows[1].sum()) < 2:
+        rows = (np.ones(len(one["particles"]), bool), np.ones(len(other["particles"]), bool))
+    a, se_a = _rms_over(_judged(one, rows[0]), planes)
+    b, se_b = _rms_over(_judged(other, rows[1]), planes)
+    return bool(b - a > max(CORE_TOLERANCE * a, math.hypot(se_a, se_b)))
+
+
+def _shared(one: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the particles ``one`` (n, 3) and ``other`` (m, 3) (stack, x, y pixels) the other
+    keeps too: one in the same stack within :data:`SAME_PARTICLE_PX` on both axes."""
+    same = (np.abs(one[:, None, 1:] - other[None, :, 1:]).max(axis=2) <= SAME_PARTICLE_PX) & (
+        one[:, None, 0] == other[None, :, 0]
+    )
+    return same.any(axis=1), same.any(axis=0)
+
+
+def _judged(score: dict[str, Any], rows: np.ndarray) -> dict[str, Any]:
+    """A candidate's score over its kept particles ``rows`` (bool): ``errors`` (n_kinds, n_z),
+    the RMS over them of each plane's measured errors (a guess's where none is); ``measured``,
+    the fraction of them measured on each plane; their ``particle_sq`` and ``alias_sq``."""
+    squares = score["particle_sq"][:, rows]
+    count = np.isfinite(squares).sum(axis=1)
+    rms = np.sqrt(np.nansum(squares, axis=1) / np.maximum(count, 1))
+    return {
+        "errors": np.where(count > 0, rms, score["guess_nm"]),
+        "particle_sq": squares,
+        "alias_sq": score["alias_sq"][:, rows],
+        "measured": score["measured_each"][rows].mean(axis=0) if rows.any() else 0.0 * rms[0],
+        "guess_nm": score["guess_nm"],
     }
 
 
@@ -260,26 +307,20 @@ def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
     than half its particles) pooled with its aliases (``alias_sq``: emitters from planes beyond
     a particle's usable range that are read in range, anywhere in the stack), and its standard
     error over the particles (delta method on each particle's mean square; over the planes for
-    a lone particle; 0 without ``particle_sq``)."""
+    a lone particle)."""
     if not planes.any():
         return np.inf, 0.0
     own = score["measured"] >= 0.5
     errors = np.where(own, score["errors"], score["guess_nm"])[:, planes]
-    alias = score.get("alias_sq")
-    n_kept = max(int(score.get("kept", 0)), 1)
-    if alias is None:
-        alias = np.full((1, n_kept, 1), np.nan)
+    alias = score["alias_sq"]
+    n_kept = max(alias.shape[1], 1)
     weight = errors.size * n_kept  # each kind and plane holds every kept particle
     value = float(np.sqrt((np.sum(errors**2) * n_kept + np.nansum(alias))
                           / (weight + np.isfinite(alias).sum())))  # fmt: skip
-    squares = score.get("particle_sq")
-    if squares is None or squares.shape[1] == 0:
-        return value, 0.0
-    squares = np.where(own, squares, score["guess_nm"] ** 2)[:, :, planes]
+    squares = np.where(own, score["particle_sq"], score["guess_nm"] ** 2)[:, :, planes]
     per = np.moveaxis(squares, 1, 0).reshape(squares.shape[1], -1)  # (n_kept, entries)
-    if alias.shape[1] == per.shape[0]:
-        aliased = np.moveaxis(alias, 1, 0).reshape(per.shape[0], -1)
-        per = np.concatenate([per, aliased[:, np.isfinite(aliased).any(axis=0)]], axis=1)
+    aliased = np.moveaxis(alias, 1, 0).reshape(per.shape[0], -1)
+    per = np.concatenate([per, aliased[:, np.isfinite(aliased).any(axis=0)]], axis=1)
     samples = np.nanmean(per, axis=1)
     if np.isfinite(samples).sum() < 2:  # a lone particle: its planes' noise draws instead
         samples = np.nanmean(squares, axis=(0, 1))
@@ -288,18 +329,3 @@ def _rms_over(score: dict[str, Any], planes: np.ndarray) -> tuple[float, float]:
         return value, 0.0
     se_square = float(np.std(samples, ddof=1) / np.sqrt(samples.size))
     return value, se_square / (2 * value) if value > 0 else 0.0
-
-
-def _as_good(table: dict[int, dict[str, Any]], rois: list[int], name: str) -> list[int]:
-    """The ``rois`` whose ``{name}_nm`` exceeds the best by no more than their noise (the two
-    standard errors in quadrature) or :data:`CORE_TOLERANCE` of the best, whichever is larger."""
-    finite = [r for r in rois if np.isfinite(table[r][f"{name}_nm"])]
-    if not finite:
-        return []
-    best = min(finite, key=lambda r: table[r][f"{name}_nm"])
-    value, se = table[best][f"{name}_nm"], table[best][f"{name}_se_nm"]
-    return [
-        r for r in finite
-        if table[r][f"{name}_nm"] - value
-        <= max(CORE_TOLERANCE * value, math.hypot(se, table[r][f"{name}_se_nm"]))
-    ]  # fmt: skip

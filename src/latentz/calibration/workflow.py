@@ -340,10 +340,7 @@ def _calibrate_roi(run, first: int, limit: int, judge, final=None) -> Calibratio
         if roi not in runs and roi not in failures:
             attempt(roi)
     scored = {r: run_ for r, run_ in runs.items() if r <= upper} or runs
-    scores = {
-        r: {**judge(cal), "kept": cal.kept.size}
-        for r, (cal, _) in scored.items()
-    }
+    scores = {r: judge(cal) for r, (cal, _) in scored.items()}
     chosen, record = choose_roi(scores)
     record["failed"] = {str(r): str(e) for r, (e, _) in failures.items()}
     cal, caught = runs[chosen] if final is None else final(chosen)
