@@ -286,11 +286,12 @@ def _judged(score: dict[str, Any], rows: np.ndarray) -> dict[str, Any]:
     squares = score["particle_sq"][:, rows]
     count = np.isfinite(squares).sum(axis=1)
     rms = np.sqrt(np.nansum(squares, axis=1) / np.maximum(count, 1))
+    measured = score["measured_each"][rows]
     return {
         "errors": np.where(count > 0, rms, score["guess_nm"]),
         "particle_sq": squares,
         "alias_sq": score["alias_sq"][:, rows],
-        "measured": score["measured_each"][rows].mean(axis=0) if rows.any() else 0.0 * rms[0],
+        "measured": measured.mean(axis=0) if rows.any() else np.zeros(measured.shape[1]),
         "guess_nm": score["guess_nm"],
     }
 
