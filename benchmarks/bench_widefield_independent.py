@@ -355,7 +355,8 @@ def curve_transfer(data, cal, spots: pd.DataFrame) -> str:
 def defaults_study(data, size: str, cache: Path | None) -> tuple[str, dict[str, str]]:
     """Issue 12's "defaults only" study: ``calibrate`` with no shape, ROI or field model, the
     test frames localized with ``localize(calibration=cal)`` (its ROI, shape and model), beside
-    ``nearest`` and the inverse-distance baseline at the same shape and ROI.
+    ``nearest`` and the inverse-distance baseline at the same shape and ROI, and the defaults
+    without the particles' own lateral reference (``apply(lateral_reference="focus")``).
 
     Returns the text (a table with one row per model: the scores of :func:`summarise`,
     ``z / nearest``, and the z RMSE of the same spots without noise, ``z noise-free``; then
@@ -372,6 +373,10 @@ def defaults_study(data, size: str, cache: Path | None) -> tuple[str, dict[str, 
         f"defaults: {cal.field_model}": cal.apply,
         "nearest": near.apply,
         "IDW 4-nearest baseline": lambda frame: idw_baseline(near, frame),
+        # σ without the particles' own lateral reference (docs/accuracy.md, part 4)
+        "defaults, lateral_reference='focus'": lambda frame: cal.apply(
+            frame, lateral_reference="focus"
+        ),
     }
     rows = []
     for name, apply in models.items():
@@ -386,6 +391,8 @@ def defaults_study(data, size: str, cache: Path | None) -> tuple[str, dict[str, 
         "shape": cal.shape + (f" ({choice.get('reason')})" if choice.get("reason") else ""),
         "field model": cal.field_model,
         "kept particles": f"{cal.kept.size} of {len(cal.positions)}",
+        "particles' own lateral reference x / y": f"{cal.reference_sigma_nm('x'):.1f} / "
+        f"{cal.reference_sigma_nm('y'):.1f} nm",
     }
     text = (
         table.to_markdown(index=False, floatfmt=".3g")
