@@ -95,7 +95,8 @@ N_CANDIDATES = 3
 CROWDED_FRACTION = 0.25
 #: Photon counts of the typical single emitters the ROI is judged for.
 EMITTER_PHOTONS = (1e3, 1e4)
-#: A candidate whose near-focus error is within this fraction of the best is eligible.
+#: One candidate beats another only where it errs less by more than this fraction and their
+#: noise.
 CORE_TOLERANCE = 0.05
 #: Two candidates' kept particles are one particle where they lie in the same stack within
 #: this many pixels on both axes.
