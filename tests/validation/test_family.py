@@ -140,10 +140,12 @@ def test_the_coverage_interval_holds_right_errors_shared_by_each_emitters_spots(
 # A small family in CI: four draws at the "ci" size (72 x 72 px, 9 calibration particles in
 # each of two stacks through at most +-1 um, 24 test spots of 6 emitters), calibrated with
 # defaults only: every draw calibrates, and z RMSE <= 3x its oracle floor wherever the floor
-# itself calibrates. 1σ coverage of each axis lies in the 99 % interval of a right error model on
-# the draw's own spots (truth.coverage_interval: the particles' own lateral reference is shared by
-# an emitter's spots, and the scoring's plane is fitted to 6 emitters), not the family's 50-85 %,
-# which ~20 spots cannot resolve. Measured figures: docs/validation-family.md.
+# itself calibrates. At least 8 spots are scored: a 19 px ROI (draw 1's) flags the spots within
+# 9.5 px of this small field's edge, two thirds of them, which the scoring leaves out. 1σ
+# coverage of each axis lies in the 99 % interval of a right error model on the draw's own
+# spots (truth.coverage_interval: the particles' own lateral reference is shared by an
+# emitter's spots, and the scoring's plane is fitted to 6 emitters), not the family's
+# 50-85 %, which ~20 spots cannot resolve. Measured figures: docs/validation-family.md.
 FAMILY_SEEDS = (0, 1, 2, 3)
 
 
@@ -160,7 +162,7 @@ def test_defaults_hold_on_a_small_random_family(seed, ci_family):
     row = ci_family[seed]
     print(row)
     assert not row.get("fails"), f"draw {seed} does not calibrate: {row.get('fails')}"
-    assert row["spots"] >= 10
+    assert row["spots"] >= 8
     if not row.get("floor fails"):
         assert row["ratio"] <= 3.0, f"z RMSE on the floor's spots is {row['ratio']:.2f}x the floor"
     for axis in "xyz":

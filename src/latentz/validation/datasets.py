@@ -118,24 +118,19 @@ def render_patches(
     bead_nm: float = 0.0,
 ) -> np.ndarray:
     """(m, size, size) expected photon fraction of one emitter at (x, y) for each defocus,
-    centred on the pixel nearest the emitter; the patch shrinks where the spot is small."""
+    centred on the pixel nearest the emitter. Every plane fills the whole patch: a patch cut
+    to the spot's central disc drops its rings and comatic flare, which pull a fitted centre
+    by a different amount at each sub-pixel phase (docs/validation.md)."""
     wave = microscope.wavefront_nm(fields.coefficients([x_px], [y_px])[0])
     offsets, discs, weights = bead_slices(bead_nm)
     dx, dy = x_px - np.rint(x_px), y_px - np.rint(y_px)
     out = np.zeros((len(defocus_nm), size, size))
-    slope = microscope.na / np.sqrt(microscope.n_medium**2 - microscope.na**2)
-    radius_px = np.abs(defocus_nm) * slope / microscope.pixel_size_nm
-    need = np.minimum(2 * (np.ceil(radius_px).astype(int) + 5) + 1, size)
-    for patch in np.unique(need):
-        rows = np.flatnonzero(need == patch)
-        for chunk in np.array_split(rows, max(1, rows.size // 8)):
-            planes = (defocus_nm[chunk][:, None] + offsets[None, :]).ravel()
-            img = microscope.pixel_image(dx, dy, wave, planes, patch,
-                                         disc_radius_nm=np.tile(discs, chunk.size))  # fmt: skip
-            img = np.einsum("msij,s->mij", img.reshape(chunk.size, offsets.size, patch, patch),
-                            weights)  # fmt: skip
-            lo = size // 2 - patch // 2
-            out[chunk, lo : lo + patch, lo : lo + patch] = img
+    for chunk in np.array_split(np.arange(len(defocus_nm)), max(1, len(defocus_nm) // 8)):
+        planes = (defocus_nm[chunk][:, None] + offsets[None, :]).ravel()
+        img = microscope.pixel_image(dx, dy, wave, planes, size,
+                                     disc_radius_nm=np.tile(discs, chunk.size))  # fmt: skip
+        out[chunk] = np.einsum("msij,s->mij", img.reshape(chunk.size, offsets.size, size, size),
+                               weights)  # fmt: skip
     return out
 
 
