@@ -64,7 +64,7 @@ def row_of(form: str, seed: int) -> dict:
         row[f"ref {a}"] = cal.reference_sigma_nm(a)
         off = plane_residual(offsets[a], cal.positions[cal.kept])
         row[f"off {a}"] = float(np.sqrt(np.nanmean(off**2)))
-    return row | {"s": round(time.perf_counter() - start)}
+    return row | {"total s": round(time.perf_counter() - start)}
 
 
 def write(rows: list[dict], command: str, seconds: float) -> None:
