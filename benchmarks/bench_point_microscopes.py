@@ -36,7 +36,7 @@ from latentz.validation import AberrationFields, make_data
 from latentz.validation.truth import localize_test, score, summary
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_lateral_reference import plane_residual, reference_offsets  # noqa: E402
+from bench_lateral_reference import plane_residual, reference_offsets, rms  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_point_microscopes.md"
 FIELDS = ("random", "polynomial")
@@ -62,8 +62,7 @@ def row_of(form: str, seed: int) -> dict:
     for a in "xy":
         row[f"cov {a} focus"] = focus[f"cover_{a}"]
         row[f"ref {a}"] = cal.reference_sigma_nm(a)
-        off = plane_residual(offsets[a], cal.positions[cal.kept])
-        row[f"off {a}"] = float(np.sqrt(np.nanmean(off**2)))
+        row[f"off {a}"] = rms(plane_residual(offsets[a], cal.positions[cal.kept]))
     return row | {"total s": round(time.perf_counter() - start)}
 
 
