@@ -32,7 +32,7 @@ import pandas as pd
 
 from latentz._shared.atomic import write_text_atomic
 from latentz.calibration import calibrate
-from latentz.validation import AberrationFields, make_data
+from latentz.validation import AberrationFields, ValidationData, make_data
 from latentz.validation.truth import localize_test, score, summary
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -42,13 +42,19 @@ OUT = Path(__file__).resolve().parent / "results" / "bench_point_microscopes.md"
 FIELDS = ("random", "polynomial")
 
 
-def row_of(form: str, seed: int) -> dict:
-    """One microscope's row (module notes)."""
-    start = time.perf_counter()
+def point_data(form: str, seed: int) -> ValidationData:
+    """The microscope of ``form`` (one of :data:`FIELDS`) and ``seed``, with its stacks and test
+    frames (module notes)."""
     fields = None
     if form == "polynomial":
         fields = AberrationFields.polynomial((256, 256), seed=seed, pixel_size_nm=130.0)
-    data = make_data("full", seed=seed, bead_nm=0.0, test_photons=(2e4, 2e5), fields=fields)
+    return make_data("full", seed=seed, bead_nm=0.0, test_photons=(2e4, 2e5), fields=fields)
+
+
+def row_of(form: str, seed: int) -> dict:
+    """One microscope's row (module notes)."""
+    start = time.perf_counter()
+    data = point_data(form, seed)
     cal = calibrate(data.stacks, data.z_nm, camera=data.camera)
     spots = localize_test(data, calibration=cal)
     row = {"fields": form, "seed": seed, "ROI": cal.roi_size, "shape": cal.shape,
