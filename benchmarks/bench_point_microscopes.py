@@ -15,8 +15,13 @@ reported 1σ (``cov``), the same without the particles' own lateral reference
 particles' positions at best focus less their true places, RMS about a plane (``off x``, nm).
 Writes ``results/bench_point_microscopes.md`` after every microscope (atomically).
 
-Run: ``python benchmarks/bench_point_microscopes.py [--seeds 0,1,2] [--fields random,polynomial]``
-(about two minutes per microscope on a 2-core machine).
+With ``--rois 11,15,…`` each microscope is instead calibrated at each of those ROIs (every other
+option at its default), and one row per microscope and ROI gives the kept particles' offsets
+from their places at best focus (RMS about a plane), their part shared by neighbours, and the
+particles' own reference part of σ: ``results/bench_point_microscopes_rois.md``.
+
+Run: ``python benchmarks/bench_point_microscopes.py [--seeds 0,1,2] [--fields random,polynomial]
+[--rois 11,15,19,23,27,31]`` (about two minutes per microscope on a 2-core machine).
 """
 
 from __future__ import annotations
@@ -36,7 +41,12 @@ from latentz.validation import AberrationFields, ValidationData, make_data
 from latentz.validation.truth import localize_test, score, summary
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_lateral_reference import plane_residual, reference_offsets, rms  # noqa: E402
+from bench_lateral_reference import (  # noqa: E402
+    plane_residual,
+    reference_offsets,
+    rms,
+    smooth_rms,
+)
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_point_microscopes.md"
 FIELDS = ("random", "polynomial")
@@ -72,6 +82,43 @@ def row_of(form: str, seed: int) -> dict:
     return row | {"total s": round(time.perf_counter() - start)}
 
 
+def reference_rows(form: str, seed: int, rois: list[int]) -> list[dict]:
+    """One row per ROI of ``rois`` for one microscope calibrated at that ROI (every other option
+    at its default): the kept particles' positions at best focus less their places, RMS about a
+    plane (``off``, nm), the part of that shared by nearest neighbours (``shared``, nm), and the
+    particles' own reference part of σ (``ref``, nm)."""
+    data = point_data(form, seed)
+    rows = []
+    for roi in rois:
+        cal = calibrate(data.stacks, data.z_nm, camera=data.camera, roi_size=roi)
+        offsets = reference_offsets(cal, data.calibration_truth)
+        places = cal.positions[cal.kept]
+        row = {"fields": form, "seed": seed, "ROI": roi, "kept": cal.kept.size}
+        for a in "xy":
+            residual = plane_residual(offsets[a], places)
+            row |= {f"off {a}": rms(residual), f"shared {a}": smooth_rms(residual, places),
+                    f"ref {a}": cal.reference_sigma_nm(a)}  # fmt: skip
+        rows.append(row)
+    return rows
+
+
+def write_reference(rows: list[dict], command: str, seconds: float) -> None:
+    """The table of :func:`reference_rows` so far."""
+    text = "\n".join([
+        "# The particles' reference offsets against the ROI, on point-particle microscopes",
+        "",
+        f"Command: `{command}` ({seconds / 60:.0f} min on a 2-core machine). Each microscope "
+        "calibrated at each ROI, every other option at its default. `off x`: the kept "
+        "particles' positions at best focus less their places, RMS about a plane (nm); "
+        "`shared x`: its part shared by nearest neighbours (nm); `ref x`: the particles' own "
+        "reference part of σ (nm).",
+        "",
+        pd.DataFrame(rows).to_markdown(index=False, floatfmt=".3g"),
+        "",
+    ])  # fmt: skip
+    write_text_atomic(OUT.with_name("bench_point_microscopes_rois.md"), text)
+
+
 def write(rows: list[dict], command: str, seconds: float) -> None:
     table = pd.DataFrame(rows)
     pooled = {a: np.average(table[f"cov {a}"], weights=table["spots"]) for a in "xyz"}
@@ -99,6 +146,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
     parser.add_argument("--fields", default=",".join(FIELDS), help="random and/or polynomial")
+    parser.add_argument("--rois", default="", help="comma-separated ROIs (px): the reference "
+                        "offsets at each instead (results/bench_point_microscopes_rois.md)")
     args = parser.parse_args()
     forms = args.fields.split(",")
     if not set(forms) <= set(FIELDS):
@@ -106,12 +155,17 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",")]
     command = "python benchmarks/bench_point_microscopes.py " + " ".join(sys.argv[1:])
     warnings.simplefilter("ignore")
+    rois = [int(r) for r in args.rois.split(",") if r]
     start, rows = time.perf_counter(), []
     for form in forms:
         for seed in seeds:
-            rows.append(row_of(form, seed))
+            if rois:
+                rows += reference_rows(form, seed, rois)
+                write_reference(rows, command.strip(), time.perf_counter() - start)
+            else:
+                rows.append(row_of(form, seed))
+                write(rows, command.strip(), time.perf_counter() - start)
             print(rows[-1], flush=True)
-            write(rows, command.strip(), time.perf_counter() - start)
 
 
 if __name__ == "__main__":
