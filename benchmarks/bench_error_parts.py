@@ -139,12 +139,13 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
             return "" if np.isnan(value) else f"{value:.3g}"
         return str(value)
 
+    out = "" if args.out == OUT else f" --out benchmarks/results/{Path(args.out).name}"
     lines = [
         "# What z_err_nm is made of, on the random family of microscopes",
         "",
         f"Command: `python benchmarks/bench_error_parts.py --first {args.first} --draws "
-        f"{args.draws} --size {args.size}` ({len(rows)} draws, {seconds / 60:.0f} min on a "
-        "shared, loaded 2-core machine).",
+        f"{args.draws} --size {args.size}{out}` ({len(rows)} draws, {seconds / 60:.0f} min "
+        "on a 2-core machine).",
         "",
         "`k`: the factor by which each reported part is too small (median of |error| / σ over "
         "0.674); `k fit` for the fit noise against `z_err_fit_nm`, `k sys` for the noise-free "
