@@ -133,8 +133,9 @@ def main() -> None:
     for k in range(args.draws):
         settings, data = (point_draw(k, args.draws) if args.microscopes == "point"
                           else draw(k, args.size))  # fmt: skip
-        rows += rows_of(settings, data, rois)
-        print(pd.DataFrame(rows).tail(len(rois or [0, 0, 0])).to_string(), flush=True)
+        done = rows_of(settings, data, rois)
+        rows += done
+        print(pd.DataFrame(done).to_string(), flush=True)
         write(rows, out, command.strip(), time.perf_counter() - start)
 
 
