@@ -139,7 +139,7 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> None:
             return "" if np.isnan(value) else f"{value:.3g}"
         return str(value)
 
-    out = "" if args.out == OUT else f" --out benchmarks/results/{Path(args.out).name}"
+    out = "" if args.out == OUT else f" --out {args.out}"
     lines = [
         "# What z_err_nm is made of, on the random family of microscopes",
         "",

@@ -65,10 +65,10 @@ def draw(k: int, size: str) -> tuple[dict, ValidationData]:
 
 
 def point_draw(k: int, draws: int) -> tuple[dict, ValidationData]:
-    """The k-th point-particle microscope of ``draws``: random fields for seeds 0 … draws/2 − 1,
-    then polynomial fields for the same seeds."""
-    half = max(draws // 2, 1)
-    form, seed = FIELDS[min(k // half, 1)], k % half
+    """The k-th point-particle microscope of ``draws``: random fields for seeds 0, 1, … (the
+    first half, rounded up), then polynomial fields for seeds 0, 1, …"""
+    half = (draws + 1) // 2
+    form, seed = FIELDS[k // half], k % half
     return {"draw": k, "fields": form, "seed": seed}, point_data(form, seed)
 
 
